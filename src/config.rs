@@ -1,0 +1,278 @@
+//! One serde config for the task, the damage model and the context window.
+//!
+//! Every default is the value the env issue (and the paper) specifies, so `GaitConfig::default()`
+//! *is* the experiment; a JSON file only needs the fields it changes.
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+use crate::damage::ConditionChoice;
+
+/// Everything that defines the damaged-Ant task.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct GaitConfig {
+    pub env: EnvConfig,
+    pub damage: DamageConfig,
+    pub context: ContextConfig,
+}
+
+/// Gymnasium Ant-v4 plus the goal task.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EnvConfig {
+    /// MJCF file to load; `None` uses the bundled `assets/ant.xml` (compiled into the binary).
+    pub model_path: Option<PathBuf>,
+    /// Physics steps per env step (Ant-v4: 5, so dt = 5 × 0.01 s).
+    pub frame_skip: usize,
+    /// Half-width of the uniform qpos noise and std of the qvel noise at reset.
+    pub reset_noise_scale: f64,
+    pub ctrl_cost_weight: f64,
+    pub healthy_reward: f64,
+    /// Torso height range (m) in which the Ant counts as healthy.
+    pub healthy_z_range: [f64; 2],
+    pub goal: [f64; 2],
+    /// Episode succeeds (and terminates) once the torso is closer than this to the goal.
+    pub success_radius: f64,
+    /// Weight of the native Ant reward in the task reward.
+    pub native_reward_weight: f64,
+    /// Weight of the per-step decrease in goal distance.
+    pub progress_weight: f64,
+    /// Paid on the step the torso enters the success radius.
+    pub success_bonus: f64,
+    /// Truncation limit: 1000 for training, 500 for evaluation.
+    pub max_episode_steps: usize,
+}
+
+impl Default for EnvConfig {
+    fn default() -> Self {
+        Self {
+            model_path: None,
+            frame_skip: 5,
+            reset_noise_scale: 0.1,
+            ctrl_cost_weight: 0.5,
+            healthy_reward: 1.0,
+            healthy_z_range: [0.2, 1.0],
+            goal: [5.0, 5.0],
+            success_radius: 1.0,
+            native_reward_weight: 0.5,
+            progress_weight: 50.0,
+            success_bonus: 200.0,
+            max_episode_steps: 1000,
+        }
+    }
+}
+
+/// The fatigue model (the paper's "DamageWrapper").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DamageConfig {
+    /// Fatigue per unit of |commanded action| per step.
+    pub alpha: f64,
+    /// Fatigue per unit of ‖cfrc_ext‖₂ on the actuated body per step.
+    pub beta: f64,
+    /// Fatigue at which an actuator triggers (permanently, for the episode).
+    pub threshold: f64,
+    pub scales: ConditionScales,
+    /// How each episode's condition is chosen.
+    pub condition: ConditionChoice,
+}
+
+impl Default for DamageConfig {
+    fn default() -> Self {
+        Self {
+            alpha: 1.0,
+            beta: 0.1,
+            threshold: 30.0,
+            scales: ConditionScales::default(),
+            condition: ConditionChoice::Random,
+        }
+    }
+}
+
+/// Torque scale applied to a triggered actuator, per condition.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ConditionScales {
+    pub healthy: f64,
+    pub mild: f64,
+    pub severe: f64,
+}
+
+impl Default for ConditionScales {
+    fn default() -> Self {
+        Self {
+            healthy: 1.0,
+            mild: 0.5,
+            severe: 0.1,
+        }
+    }
+}
+
+/// The context window (the paper's "ContextHistoryWrapper").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ContextConfig {
+    /// Number of past (observation, action) pairs the encoder sees.
+    pub len: usize,
+}
+
+impl Default for ContextConfig {
+    fn default() -> Self {
+        Self { len: 16 }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("config file {path} is not a valid gaitscope config: {source}")]
+    Parse {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    #[error("invalid config: {0}")]
+    Invalid(String),
+}
+
+impl GaitConfig {
+    /// Reads a JSON config; missing fields take their defaults, unknown fields are an error.
+    pub fn from_json_file(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        let config: Self = serde_json::from_str(&text).map_err(|source| ConfigError::Parse {
+            path: path.to_owned(),
+            source,
+        })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Rejects values that would make the env meaningless or numerically broken.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |msg: String| Err(ConfigError::Invalid(msg));
+        let e = &self.env;
+        let d = &self.damage;
+        let finite = [
+            ("env.reset_noise_scale", e.reset_noise_scale),
+            ("env.ctrl_cost_weight", e.ctrl_cost_weight),
+            ("env.healthy_reward", e.healthy_reward),
+            ("env.healthy_z_range[0]", e.healthy_z_range[0]),
+            ("env.healthy_z_range[1]", e.healthy_z_range[1]),
+            ("env.goal[0]", e.goal[0]),
+            ("env.goal[1]", e.goal[1]),
+            ("env.success_radius", e.success_radius),
+            ("env.native_reward_weight", e.native_reward_weight),
+            ("env.progress_weight", e.progress_weight),
+            ("env.success_bonus", e.success_bonus),
+            ("damage.alpha", d.alpha),
+            ("damage.beta", d.beta),
+            ("damage.threshold", d.threshold),
+            ("damage.scales.healthy", d.scales.healthy),
+            ("damage.scales.mild", d.scales.mild),
+            ("damage.scales.severe", d.scales.severe),
+        ];
+        if let Some((name, value)) = finite.iter().find(|(_, v)| !v.is_finite()) {
+            return invalid(format!("{name} must be finite, got {value}"));
+        }
+        if e.frame_skip == 0 {
+            return invalid("env.frame_skip must be at least 1".into());
+        }
+        if e.max_episode_steps == 0 {
+            return invalid("env.max_episode_steps must be at least 1".into());
+        }
+        if e.reset_noise_scale < 0.0 {
+            return invalid(format!(
+                "env.reset_noise_scale must be ≥ 0, got {}",
+                e.reset_noise_scale
+            ));
+        }
+        if e.healthy_z_range[0] > e.healthy_z_range[1] {
+            return invalid(format!(
+                "env.healthy_z_range {:?} is empty",
+                e.healthy_z_range
+            ));
+        }
+        if e.success_radius <= 0.0 {
+            return invalid(format!(
+                "env.success_radius must be > 0, got {}",
+                e.success_radius
+            ));
+        }
+        if d.alpha < 0.0 || d.beta < 0.0 || d.threshold <= 0.0 {
+            return invalid(format!(
+                "damage.alpha and damage.beta must be ≥ 0 and damage.threshold > 0 (got {}, {}, {})",
+                d.alpha, d.beta, d.threshold
+            ));
+        }
+        for (name, s) in [
+            ("healthy", d.scales.healthy),
+            ("mild", d.scales.mild),
+            ("severe", d.scales.severe),
+        ] {
+            if !(0.0..=1.0).contains(&s) {
+                return invalid(format!("damage.scales.{name} must lie in [0, 1], got {s}"));
+            }
+        }
+        if self.context.len == 0 {
+            return invalid("context.len must be at least 1".into());
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_the_specified_experiment() {
+        let c = GaitConfig::default();
+        assert_eq!(c.env.frame_skip, 5);
+        assert_eq!(c.env.goal, [5.0, 5.0]);
+        assert_eq!(
+            (c.damage.alpha, c.damage.beta, c.damage.threshold),
+            (1.0, 0.1, 30.0)
+        );
+        assert_eq!(
+            c.damage.scales,
+            ConditionScales {
+                healthy: 1.0,
+                mild: 0.5,
+                severe: 0.1
+            }
+        );
+        assert_eq!(c.context.len, 16);
+        c.validate().expect("defaults are valid");
+    }
+
+    #[test]
+    fn partial_json_keeps_defaults_and_unknown_fields_fail() {
+        let c: GaitConfig = serde_json::from_str(r#"{"damage": {"threshold": 10.0}}"#).unwrap();
+        assert_eq!(c.damage.threshold, 10.0);
+        assert_eq!(c.damage.alpha, 1.0);
+        assert!(serde_json::from_str::<GaitConfig>(r#"{"damage": {"treshold": 10.0}}"#).is_err());
+    }
+
+    #[test]
+    fn invalid_values_are_named() {
+        let mut c = GaitConfig::default();
+        c.damage.scales.severe = 1.5;
+        let err = c.validate().unwrap_err().to_string();
+        assert!(err.contains("damage.scales.severe"), "{err}");
+        let mut c = GaitConfig::default();
+        c.env.goal[1] = f64::NAN;
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("env.goal[1]")
+        );
+    }
+}

@@ -1,0 +1,402 @@
+//! Contact-force fatigue (the paper's "DamageWrapper").
+//!
+//! Each actuator accumulates fatigue `f_i += α·|a_i| + β·‖cfrc_ext[body_i]‖₂` after every env step.
+//! The first time `f_i ≥ τ` the actuator triggers, and from the next step on, for the rest of the
+//! episode, its applied command is `s·a_i` where `s` is the episode's condition scale. A person
+//! (the live viewer) may also override any joint at any step; overrides are events too.
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+
+use crate::config::{ConditionScales, DamageConfig};
+
+/// Number of actuators in the Ant.
+pub const N_ACTUATORS: usize = 8;
+
+/// An episode's damage condition: the torque scale a triggered actuator is left with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Condition {
+    Healthy,
+    Mild,
+    Severe,
+}
+
+impl Condition {
+    pub const ALL: [Condition; 3] = [Condition::Healthy, Condition::Mild, Condition::Severe];
+
+    pub fn scale(self, scales: &ConditionScales) -> f64 {
+        match self {
+            Condition::Healthy => scales.healthy,
+            Condition::Mild => scales.mild,
+            Condition::Severe => scales.severe,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Condition::Healthy => "healthy",
+            Condition::Mild => "mild",
+            Condition::Severe => "severe",
+        }
+    }
+
+    /// Index in [`Condition::ALL`], used as a class label by the probes.
+    pub fn index(self) -> usize {
+        self as usize
+    }
+}
+
+impl fmt::Display for Condition {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Condition {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().as_str() {
+            "healthy" => Ok(Condition::Healthy),
+            "mild" => Ok(Condition::Mild),
+            "severe" => Ok(Condition::Severe),
+            other => Err(format!(
+                "unknown condition '{other}' (expected healthy, mild or severe)"
+            )),
+        }
+    }
+}
+
+/// How an episode's condition is chosen at reset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ConditionChoice {
+    /// Uniform over healthy / mild / severe from the env's seeded RNG (domain randomisation).
+    Random,
+    Fixed(Condition),
+}
+
+/// A hand-made change to one joint, e.g. from the live viewer's panel.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", content = "value", rename_all = "snake_case")]
+pub enum JointOverride {
+    /// Pin the torque scale to this value (in [0, 1]) until healed.
+    SetScale(f64),
+    /// Trigger now, as if fatigue had reached the threshold.
+    FailNow,
+    /// Restore the joint: scale 1, not triggered, fatigue 0.
+    Heal,
+    /// Zero the fatigue accumulator; the triggered state is kept.
+    ResetFatigue,
+}
+
+/// What happened to a joint.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum DamageEventKind {
+    /// Fatigue reached the threshold.
+    Trigger,
+    /// A person changed the joint.
+    Override { change: JointOverride },
+}
+
+/// One entry of the damage log.
+///
+/// `step` is the env step the event belongs to: a trigger during step `t` has `step = t` (it
+/// scales step `t + 1` onwards); an override issued before step `t` runs has `step = t` (it
+/// scales step `t` onwards).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DamageEvent {
+    pub step: usize,
+    pub actuator: usize,
+    pub joint: String,
+    /// Fatigue of the actuator when the event happened.
+    pub fatigue: f64,
+    /// Torque scale in force from the next applied step.
+    pub scale: f64,
+    #[serde(flatten)]
+    pub kind: DamageEventKind,
+}
+
+/// Per-joint state as the viewer shows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JointState {
+    Healthy,
+    Triggered,
+    /// Scale pinned by hand.
+    Manual,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum DamageError {
+    #[error(
+        "actuator index {0} out of range (the Ant has {N_ACTUATORS} actuators, 0..{N_ACTUATORS})"
+    )]
+    NoSuchActuator(usize),
+    #[error("torque scale {0} must be a finite number in [0, 1]")]
+    BadScale(f64),
+}
+
+/// Fatigue, triggers and torque scales of one episode.
+#[derive(Debug, Clone)]
+pub struct DamageState {
+    config: DamageConfig,
+    joint_names: [String; N_ACTUATORS],
+    condition: Condition,
+    fatigue: [f64; N_ACTUATORS],
+    triggered: [bool; N_ACTUATORS],
+    manual: [bool; N_ACTUATORS],
+    scale: [f64; N_ACTUATORS],
+    events: Vec<DamageEvent>,
+}
+
+impl DamageState {
+    /// `joint_names[i]` names the joint actuator `i` drives (used in events).
+    pub fn new(config: DamageConfig, joint_names: [String; N_ACTUATORS]) -> Self {
+        Self {
+            config,
+            joint_names,
+            condition: Condition::Healthy,
+            fatigue: [0.0; N_ACTUATORS],
+            triggered: [false; N_ACTUATORS],
+            manual: [false; N_ACTUATORS],
+            scale: [1.0; N_ACTUATORS],
+            events: Vec::new(),
+        }
+    }
+
+    /// Starts a new episode under `condition`: no fatigue, no triggers, full torque.
+    pub fn reset(&mut self, condition: Condition) {
+        self.condition = condition;
+        self.fatigue = [0.0; N_ACTUATORS];
+        self.triggered = [false; N_ACTUATORS];
+        self.manual = [false; N_ACTUATORS];
+        self.scale = [1.0; N_ACTUATORS];
+        self.events.clear();
+    }
+
+    /// The command each actuator actually receives for a commanded action.
+    pub fn applied_action(&self, commanded: &[f64; N_ACTUATORS]) -> [f64; N_ACTUATORS] {
+        std::array::from_fn(|i| self.scale[i] * commanded[i])
+    }
+
+    /// Adds one env step's fatigue and triggers the actuators that reach the threshold.
+    /// `contact_norms[i]` is ‖cfrc_ext‖₂ of the body actuator `i` drives. Returns how many
+    /// actuators triggered on this step (their events are the last ones in [`Self::events`]).
+    pub fn accumulate(
+        &mut self,
+        step: usize,
+        commanded: &[f64; N_ACTUATORS],
+        contact_norms: &[f64; N_ACTUATORS],
+    ) -> usize {
+        let (alpha, beta, threshold) = (self.config.alpha, self.config.beta, self.config.threshold);
+        let mut new_triggers = 0;
+        for i in 0..N_ACTUATORS {
+            self.fatigue[i] += alpha * commanded[i].abs() + beta * contact_norms[i];
+            if !self.triggered[i] && self.fatigue[i] >= threshold {
+                self.triggered[i] = true;
+                if !self.manual[i] {
+                    self.scale[i] = self.condition.scale(&self.config.scales);
+                }
+                self.push_event(step, i, DamageEventKind::Trigger);
+                new_triggers += 1;
+            }
+        }
+        new_triggers
+    }
+
+    /// Applies a hand-made change before env step `step` runs; it scales that step onwards.
+    pub fn apply_override(
+        &mut self,
+        step: usize,
+        actuator: usize,
+        change: JointOverride,
+    ) -> Result<(), DamageError> {
+        if actuator >= N_ACTUATORS {
+            return Err(DamageError::NoSuchActuator(actuator));
+        }
+        match change {
+            JointOverride::SetScale(s) => {
+                if !(s.is_finite() && (0.0..=1.0).contains(&s)) {
+                    return Err(DamageError::BadScale(s));
+                }
+                self.manual[actuator] = true;
+                self.scale[actuator] = s;
+            }
+            JointOverride::FailNow => {
+                self.triggered[actuator] = true;
+                if !self.manual[actuator] {
+                    self.scale[actuator] = self.condition.scale(&self.config.scales);
+                }
+            }
+            JointOverride::Heal => {
+                self.triggered[actuator] = false;
+                self.manual[actuator] = false;
+                self.scale[actuator] = 1.0;
+                self.fatigue[actuator] = 0.0;
+            }
+            JointOverride::ResetFatigue => self.fatigue[actuator] = 0.0,
+        }
+        self.push_event(step, actuator, DamageEventKind::Override { change });
+        Ok(())
+    }
+
+    fn push_event(&mut self, step: usize, actuator: usize, kind: DamageEventKind) {
+        self.events.push(DamageEvent {
+            step,
+            actuator,
+            joint: self.joint_names[actuator].clone(),
+            fatigue: self.fatigue[actuator],
+            scale: self.scale[actuator],
+            kind,
+        });
+    }
+
+    pub fn condition(&self) -> Condition {
+        self.condition
+    }
+    pub fn config(&self) -> &DamageConfig {
+        &self.config
+    }
+    pub fn joint_names(&self) -> &[String; N_ACTUATORS] {
+        &self.joint_names
+    }
+    pub fn fatigue(&self) -> &[f64; N_ACTUATORS] {
+        &self.fatigue
+    }
+    pub fn triggered(&self) -> &[bool; N_ACTUATORS] {
+        &self.triggered
+    }
+    /// Torque scale each actuator will apply on the next step.
+    pub fn scale(&self) -> &[f64; N_ACTUATORS] {
+        &self.scale
+    }
+    pub fn events(&self) -> &[DamageEvent] {
+        &self.events
+    }
+    pub fn n_triggered(&self) -> usize {
+        self.triggered.iter().filter(|&&t| t).count()
+    }
+    pub fn joint_state(&self, actuator: usize) -> JointState {
+        if self.manual[actuator] {
+            JointState::Manual
+        } else if self.triggered[actuator] {
+            JointState::Triggered
+        } else {
+            JointState::Healthy
+        }
+    }
+    /// Step at which each actuator first triggered by fatigue, if it did.
+    pub fn first_trigger_steps(&self) -> [Option<usize>; N_ACTUATORS] {
+        let mut steps = [None; N_ACTUATORS];
+        for e in &self.events {
+            if e.kind == DamageEventKind::Trigger && steps[e.actuator].is_none() {
+                steps[e.actuator] = Some(e.step);
+            }
+        }
+        steps
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state(condition: Condition) -> DamageState {
+        let names = std::array::from_fn(|i| format!("j{i}"));
+        let mut d = DamageState::new(DamageConfig::default(), names);
+        d.reset(condition);
+        d
+    }
+
+    #[test]
+    fn fatigue_is_alpha_abs_action_plus_beta_force() {
+        let mut d = state(Condition::Mild);
+        let a = [0.5, -0.5, 1.0, 0.0, -1.0, 0.25, 0.0, 0.0];
+        let f = [10.0, 0.0, 0.0, 20.0, 0.0, 0.0, 0.0, 0.0];
+        d.accumulate(0, &a, &f);
+        // α = 1, β = 0.1: 0.5 + 1.0, 0.5, 1.0, 2.0, 1.0, 0.25, 0, 0
+        assert_eq!(d.fatigue(), &[1.5, 0.5, 1.0, 2.0, 1.0, 0.25, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn trigger_at_threshold_scales_from_next_step_and_persists() {
+        let mut d = state(Condition::Severe);
+        let a = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let none = [0.0; N_ACTUATORS];
+        // 29 steps of |a| = 1 → fatigue 29 < 30: nothing yet.
+        for t in 0..29 {
+            assert_eq!(d.accumulate(t, &a, &none), 0);
+        }
+        assert_eq!(d.applied_action(&a)[0], 1.0);
+        // Step 29 reaches exactly 30 = τ: triggers ("reaches" includes equality).
+        assert_eq!(d.accumulate(29, &a, &none), 1);
+        assert_eq!(d.applied_action(&a)[0], 0.1);
+        assert_eq!(d.events()[0].step, 29);
+        assert_eq!(d.events()[0].fatigue, 30.0);
+        assert_eq!(d.first_trigger_steps()[0], Some(29));
+        // Persists and does not re-trigger.
+        for t in 30..100 {
+            assert_eq!(d.accumulate(t, &a, &none), 0);
+        }
+        assert!(d.triggered()[0]);
+        assert_eq!(d.events().len(), 1);
+        // A new episode starts clean.
+        d.reset(Condition::Healthy);
+        assert_eq!(d.n_triggered(), 0);
+        assert!(d.events().is_empty());
+    }
+
+    #[test]
+    fn overrides_apply_and_are_logged() {
+        let mut d = state(Condition::Mild);
+        let a = [1.0; N_ACTUATORS];
+        d.apply_override(3, 2, JointOverride::FailNow).unwrap();
+        assert_eq!(d.applied_action(&a)[2], 0.5);
+        assert_eq!(d.joint_state(2), JointState::Triggered);
+        d.apply_override(4, 5, JointOverride::SetScale(0.25))
+            .unwrap();
+        assert_eq!(d.applied_action(&a)[5], 0.25);
+        assert_eq!(d.joint_state(5), JointState::Manual);
+        // A manual scale wins over a later fatigue trigger.
+        d.accumulate(4, &[0.0; N_ACTUATORS], &[400.0; N_ACTUATORS]);
+        assert_eq!(d.applied_action(&a)[5], 0.25);
+        assert_eq!(d.applied_action(&a)[0], 0.5);
+        d.apply_override(5, 5, JointOverride::Heal).unwrap();
+        assert_eq!((d.applied_action(&a)[5], d.fatigue()[5]), (1.0, 0.0));
+        assert_eq!(d.joint_state(5), JointState::Healthy);
+        d.apply_override(5, 0, JointOverride::ResetFatigue).unwrap();
+        assert_eq!(d.fatigue()[0], 0.0);
+        assert!(d.triggered()[0], "reset fatigue keeps the trigger");
+        let overrides = d
+            .events()
+            .iter()
+            .filter(|e| matches!(e.kind, DamageEventKind::Override { .. }))
+            .count();
+        assert_eq!(overrides, 4);
+        assert_eq!(
+            d.apply_override(0, 8, JointOverride::Heal),
+            Err(DamageError::NoSuchActuator(8))
+        );
+        assert_eq!(
+            d.apply_override(0, 1, JointOverride::SetScale(f64::NAN))
+                .unwrap_err()
+                .to_string(),
+            "torque scale NaN must be a finite number in [0, 1]"
+        );
+    }
+
+    #[test]
+    fn condition_parses_and_names() {
+        assert_eq!("Severe".parse::<Condition>(), Ok(Condition::Severe));
+        assert!(
+            "broken"
+                .parse::<Condition>()
+                .unwrap_err()
+                .contains("healthy, mild or severe")
+        );
+        assert_eq!(Condition::Mild.scale(&ConditionScales::default()), 0.5);
+    }
+}

@@ -1,0 +1,517 @@
+//! The damaged-Ant world: Gymnasium Ant-v4 physics and reward, a goal at (5, 5), and the
+//! contact-force fatigue model of [`crate::damage`].
+//!
+//! Where Gymnasium defines a thing we do exactly what it does, including its quirks:
+//! `get_body_com("torso")` is the torso's `xpos`, which after `mj_step` is one substep stale
+//! (MuJoCo computes kinematics *before* integrating), and the healthy bonus is paid on every
+//! step because Ant-v4 terminates when unhealthy.
+
+use mujoco_rs::prelude::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+use crate::config::{ConfigError, GaitConfig};
+use crate::damage::{
+    Condition, ConditionChoice, DamageError, DamageState, JointOverride, N_ACTUATORS,
+};
+
+/// Observation: qpos[2..15] (13), qvel (14), goal − torso_xy (2).
+pub const OBS_DIM: usize = 29;
+pub const ACT_DIM: usize = N_ACTUATORS;
+/// Generalised coordinates of the Ant: free joint (7) + 8 hinges.
+pub const NQ: usize = 15;
+/// Degrees of freedom of the Ant: free joint (6) + 8 hinges.
+pub const NV: usize = 14;
+
+pub type Observation = [f64; OBS_DIM];
+pub type Action = [f64; ACT_DIM];
+
+/// Gymnasium's `ant.xml`, compiled in so the binary runs from any directory.
+pub const BUNDLED_ANT_XML: &str = include_str!("../assets/ant.xml");
+
+type Physics = MjData<Box<MjModel>>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum EnvError {
+    #[error("cannot read model file {path}: {source}")]
+    ModelRead {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("MuJoCo could not load the model {origin}: {reason}")]
+    ModelLoad { origin: String, reason: String },
+    #[error("model {origin} is not the Ant-v4 model: {reason}")]
+    NotAnAnt { origin: String, reason: String },
+    #[error("action has {got} values, the Ant has {expected} actuators")]
+    ActionLength { expected: usize, got: usize },
+    #[error("action[{index}] is {value}; actions must be finite")]
+    NonFiniteAction { index: usize, value: f64 },
+    #[error("the episode is over (terminated or truncated); call reset before stepping again")]
+    EpisodeOver,
+    #[error("initial state: {0}")]
+    BadState(String),
+    #[error(transparent)]
+    Damage(#[from] DamageError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+}
+
+/// One actuator's place in the model: actuator → joint → body.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ActuatorInfo {
+    pub actuator: usize,
+    pub joint: String,
+    pub joint_id: usize,
+    /// Body the joint moves; its `cfrc_ext` feeds the actuator's fatigue.
+    pub body_id: usize,
+    pub body: String,
+}
+
+/// The reward of one step, term by term.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RewardTerms {
+    /// Torso x velocity (m/s), Ant-v4's forward reward.
+    pub forward: f64,
+    pub healthy: f64,
+    pub ctrl_cost: f64,
+    /// forward + healthy − ctrl_cost: the Ant-v4 reward.
+    pub native: f64,
+    /// Decrease in goal distance this step (m).
+    pub progress: f64,
+    /// 1 when the torso is inside the success radius after this step.
+    pub success: f64,
+    /// native_w·native + progress_w·progress + bonus·success.
+    pub total: f64,
+}
+
+/// What one env step produced.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StepOutcome {
+    /// Index of this step in the episode, from 0.
+    pub step: usize,
+    pub obs: Observation,
+    pub reward: RewardTerms,
+    pub terminated: bool,
+    pub truncated: bool,
+    pub success: bool,
+    pub healthy: bool,
+    /// MuJoCo reported a diverging simulation (bad qpos/qvel/qacc) and reset its state; the
+    /// episode is terminated as unhealthy.
+    pub unstable: bool,
+    pub distance: f64,
+    pub commanded_action: Action,
+    pub applied_action: Action,
+    /// Actuators that triggered on this step.
+    pub new_triggers: usize,
+}
+
+impl StepOutcome {
+    pub fn done(&self) -> bool {
+        self.terminated || self.truncated
+    }
+}
+
+/// The Ant-v4 goal task with joint fatigue.
+pub struct AntEnv {
+    config: GaitConfig,
+    physics: Physics,
+    damage: DamageState,
+    actuators: [ActuatorInfo; N_ACTUATORS],
+    torso_body: usize,
+    init_qpos: [f64; NQ],
+    init_qvel: [f64; NV],
+    dt: f64,
+    rng: ChaCha8Rng,
+    steps: usize,
+    prev_distance: f64,
+    done: bool,
+    unstable_warnings: i32,
+}
+
+impl AntEnv {
+    /// Loads the model named by the config (or the bundled Ant) and seeds the env's RNG.
+    /// The env needs a [`Self::reset`] before the first step.
+    pub fn new(config: GaitConfig, seed: u64) -> Result<Self, EnvError> {
+        config.validate()?;
+        let (model, origin) = load_model(config.env.model_path.as_deref())?;
+        let ant =
+            AntLayout::inspect(&model).map_err(|reason| EnvError::NotAnAnt { origin, reason })?;
+        let physics = MjData::new(Box::new(model));
+        let dt = physics.model().opt().timestep * config.env.frame_skip as f64;
+        let joint_names = std::array::from_fn(|i| ant.actuators[i].joint.clone());
+        let damage = DamageState::new(config.damage.clone(), joint_names);
+        let mut env = Self {
+            config,
+            physics,
+            damage,
+            actuators: ant.actuators,
+            torso_body: ant.torso_body,
+            init_qpos: ant.init_qpos,
+            init_qvel: [0.0; NV],
+            dt,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            steps: 0,
+            prev_distance: 0.0,
+            done: true,
+            unstable_warnings: 0,
+        };
+        env.physics.forward();
+        env.prev_distance = env.goal_distance();
+        Ok(env)
+    }
+
+    /// Reseeds the RNG, then resets (Gymnasium's `reset(seed=...)`).
+    pub fn reset_with_seed(&mut self, seed: u64) -> Observation {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+        self.reset()
+    }
+
+    /// Starts an episode: draws the condition (if random), then qpos = init + U(−c, c) and
+    /// qvel = init + c·N(0, 1) with c the reset noise scale.
+    pub fn reset(&mut self) -> Observation {
+        let condition = match self.config.damage.condition {
+            ConditionChoice::Random => {
+                Condition::ALL[self.rng.random_range(0..Condition::ALL.len())]
+            }
+            ConditionChoice::Fixed(c) => c,
+        };
+        let c = self.config.env.reset_noise_scale;
+        let qpos: [f64; NQ] =
+            std::array::from_fn(|i| self.init_qpos[i] + self.rng.random_range(-c..=c));
+        let qvel: [f64; NV] = std::array::from_fn(|i| {
+            let n: f64 = self.rng.sample(StandardNormal);
+            self.init_qvel[i] + c * n
+        });
+        self.start_episode(&qpos, &qvel, condition)
+    }
+
+    /// Starts an episode from a given state (no noise), as the replay command does.
+    pub fn reset_to_state(
+        &mut self,
+        qpos: &[f64],
+        qvel: &[f64],
+        condition: Condition,
+    ) -> Result<Observation, EnvError> {
+        check_state_vector("qpos", qpos, NQ)?;
+        check_state_vector("qvel", qvel, NV)?;
+        Ok(self.start_episode(qpos, qvel, condition))
+    }
+
+    fn start_episode(&mut self, qpos: &[f64], qvel: &[f64], condition: Condition) -> Observation {
+        // Gymnasium: mj_resetData, then set_state (qpos, qvel, mj_forward).
+        self.physics.reset();
+        self.physics.qpos_mut().copy_from_slice(qpos);
+        self.physics.qvel_mut().copy_from_slice(qvel);
+        self.physics.forward();
+        self.damage.reset(condition);
+        self.steps = 0;
+        self.done = false;
+        self.unstable_warnings = self.divergence_warnings();
+        self.prev_distance = self.goal_distance();
+        self.observation()
+    }
+
+    /// Advances one env step (frame_skip physics steps) with `action` in [−1, 1]⁸.
+    /// Values outside are clipped; a wrong length or a non-finite value is an error.
+    pub fn step(&mut self, action: &[f64]) -> Result<StepOutcome, EnvError> {
+        if self.done {
+            return Err(EnvError::EpisodeOver);
+        }
+        let commanded = validate_action(action)?;
+        let applied = self.damage.applied_action(&commanded);
+        let xy_before = self.torso_xy();
+
+        self.physics.ctrl_mut().copy_from_slice(&applied);
+        for _ in 0..self.config.env.frame_skip {
+            self.physics.step();
+        }
+        // cfrc_ext is only filled on request; it depends on the final state alone, so once per
+        // env step gives the same fatigue as once per substep (and is what Gymnasium does).
+        self.physics.rne_post_constraint();
+
+        let warnings = self.divergence_warnings();
+        let unstable = warnings != self.unstable_warnings;
+        self.unstable_warnings = warnings;
+
+        let env = &self.config.env;
+        let xy_after = self.torso_xy();
+        let forward = (xy_after[0] - xy_before[0]) / self.dt;
+        let healthy = !unstable && self.is_healthy();
+        let ctrl_cost = env.ctrl_cost_weight * applied.iter().map(|a| a * a).sum::<f64>();
+        let native = forward + env.healthy_reward - ctrl_cost;
+        let distance = self.goal_distance();
+        let progress = self.prev_distance - distance;
+        self.prev_distance = distance;
+        let success = distance < env.success_radius;
+        let success_term = if success { 1.0 } else { 0.0 };
+        let total = env.native_reward_weight * native
+            + env.progress_weight * progress
+            + env.success_bonus * success_term;
+
+        let contact_norms = self.actuator_contact_norms();
+        let step = self.steps;
+        let new_triggers = self.damage.accumulate(step, &commanded, &contact_norms);
+
+        self.steps += 1;
+        let terminated = !healthy || success;
+        let truncated = self.steps >= env.max_episode_steps;
+        self.done = terminated || truncated;
+        Ok(StepOutcome {
+            step,
+            obs: self.observation(),
+            reward: RewardTerms {
+                forward,
+                healthy: env.healthy_reward,
+                ctrl_cost,
+                native,
+                progress,
+                success: success_term,
+                total,
+            },
+            terminated,
+            truncated,
+            success,
+            healthy,
+            unstable,
+            distance,
+            commanded_action: commanded,
+            applied_action: applied,
+            new_triggers,
+        })
+    }
+
+    /// Changes a joint by hand; it takes effect on the next step and is logged as an event.
+    pub fn apply_override(
+        &mut self,
+        actuator: usize,
+        change: JointOverride,
+    ) -> Result<(), EnvError> {
+        Ok(self.damage.apply_override(self.steps, actuator, change)?)
+    }
+
+    /// The current observation (what the last reset or step returned).
+    pub fn observation(&self) -> Observation {
+        let qpos = self.physics.qpos();
+        let qvel = self.physics.qvel();
+        let xy = self.torso_xy();
+        let goal = self.config.env.goal;
+        let mut obs = [0.0; OBS_DIM];
+        obs[..NQ - 2].copy_from_slice(&qpos[2..NQ]);
+        obs[NQ - 2..NQ - 2 + NV].copy_from_slice(qvel);
+        obs[OBS_DIM - 2] = goal[0] - xy[0];
+        obs[OBS_DIM - 1] = goal[1] - xy[1];
+        obs
+    }
+
+    /// Torso position in the plane: the torso body's `xpos` (Gymnasium's `get_body_com`).
+    pub fn torso_xy(&self) -> [f64; 2] {
+        let p = self.physics.xpos()[self.torso_body];
+        [p[0], p[1]]
+    }
+
+    pub fn goal_distance(&self) -> f64 {
+        let xy = self.torso_xy();
+        let goal = self.config.env.goal;
+        (goal[0] - xy[0]).hypot(goal[1] - xy[1])
+    }
+
+    /// Healthy: torso z within the healthy range and the whole state (qpos, qvel) finite.
+    pub fn is_healthy(&self) -> bool {
+        let qpos = self.physics.qpos();
+        let [lo, hi] = self.config.env.healthy_z_range;
+        let finite = qpos
+            .iter()
+            .chain(self.physics.qvel())
+            .all(|v| v.is_finite());
+        finite && (lo..=hi).contains(&qpos[2])
+    }
+
+    /// ‖cfrc_ext‖₂ (full 6-vector) of the body each actuator drives.
+    pub fn actuator_contact_norms(&self) -> [f64; N_ACTUATORS] {
+        let cfrc = self.physics.cfrc_ext();
+        std::array::from_fn(|i| {
+            cfrc[self.actuators[i].body_id]
+                .iter()
+                .map(|v| v * v)
+                .sum::<f64>()
+                .sqrt()
+        })
+    }
+
+    /// How many times MuJoCo has found the state diverging and reset it.
+    fn divergence_warnings(&self) -> i32 {
+        let w = self.physics.warning();
+        [
+            MjtWarning::mjWARN_BADQPOS,
+            MjtWarning::mjWARN_BADQVEL,
+            MjtWarning::mjWARN_BADQACC,
+        ]
+        .iter()
+        .map(|&k| w[k as usize].number)
+        .sum()
+    }
+
+    pub fn config(&self) -> &GaitConfig {
+        &self.config
+    }
+    pub fn damage(&self) -> &DamageState {
+        &self.damage
+    }
+    pub fn actuators(&self) -> &[ActuatorInfo; N_ACTUATORS] {
+        &self.actuators
+    }
+    /// MuJoCo's state, read-only (telemetry draws the Ant from it).
+    pub fn physics(&self) -> &MjData<Box<MjModel>> {
+        &self.physics
+    }
+    pub fn qpos(&self) -> &[f64] {
+        self.physics.qpos()
+    }
+    pub fn qvel(&self) -> &[f64] {
+        self.physics.qvel()
+    }
+    pub fn torso_body(&self) -> usize {
+        self.torso_body
+    }
+    /// Env steps taken in this episode.
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+    /// Seconds per env step (frame_skip × timestep).
+    pub fn dt(&self) -> f64 {
+        self.dt
+    }
+    /// True once the episode has terminated or been truncated.
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+    pub fn condition(&self) -> Condition {
+        self.damage.condition()
+    }
+}
+
+fn load_model(path: Option<&Path>) -> Result<(MjModel, String), EnvError> {
+    match path {
+        None => {
+            let origin = "bundled assets/ant.xml".to_string();
+            let model =
+                MjModel::from_xml_string(BUNDLED_ANT_XML).map_err(|e| EnvError::ModelLoad {
+                    origin: origin.clone(),
+                    reason: e.to_string(),
+                })?;
+            Ok((model, origin))
+        }
+        Some(path) => {
+            // Read first so a missing or unreadable file gets the OS's reason, not MuJoCo's.
+            std::fs::File::open(path).map_err(|source| EnvError::ModelRead {
+                path: path.to_owned(),
+                source,
+            })?;
+            let origin = path.display().to_string();
+            let model = MjModel::from_xml(path).map_err(|e| EnvError::ModelLoad {
+                origin: origin.clone(),
+                reason: e.to_string(),
+            })?;
+            Ok((model, origin))
+        }
+    }
+}
+
+/// What the env needs to know about the model, checked once at load.
+struct AntLayout {
+    actuators: [ActuatorInfo; N_ACTUATORS],
+    torso_body: usize,
+    init_qpos: [f64; NQ],
+}
+
+impl AntLayout {
+    fn inspect(model: &MjModel) -> Result<Self, String> {
+        let (nq, nv, nu) = (
+            model.nq() as usize,
+            model.nv() as usize,
+            model.nu() as usize,
+        );
+        if (nq, nv, nu) != (NQ, NV, N_ACTUATORS) {
+            return Err(format!(
+                "expected nq={NQ}, nv={NV}, nu={N_ACTUATORS}, found nq={nq}, nv={nv}, nu={nu}"
+            ));
+        }
+        let torso_body = model
+            .name_to_id(MjtObjBase::mjOBJ_BODY, "torso")
+            .ok_or("no body named 'torso'")?;
+        let trnid = model.actuator_trnid();
+        let jnt_bodyid = model.jnt_bodyid();
+        let njnt = model.njnt() as usize;
+        let mut actuators = Vec::with_capacity(N_ACTUATORS);
+        for (i, trn) in trnid.iter().enumerate() {
+            // Look the driven joint and its body up by index, as the damage model specifies.
+            let joint_id = usize::try_from(trn[0])
+                .ok()
+                .filter(|&j| j < njnt)
+                .ok_or_else(|| format!("actuator {i} does not drive a joint"))?;
+            let body_id = jnt_bodyid[joint_id] as usize;
+            let joint = model
+                .id_to_name(MjtObjBase::mjOBJ_JOINT, joint_id)
+                .filter(|n| !n.is_empty())
+                .ok_or_else(|| format!("joint {joint_id} (actuator {i}) has no name"))?
+                .to_string();
+            let body = model
+                .id_to_name(MjtObjBase::mjOBJ_BODY, body_id)
+                .filter(|n| !n.is_empty())
+                .map_or_else(|| format!("body{body_id}"), str::to_string);
+            actuators.push(ActuatorInfo {
+                actuator: i,
+                joint,
+                joint_id,
+                body_id,
+                body,
+            });
+        }
+        let actuators: [ActuatorInfo; N_ACTUATORS] = actuators
+            .try_into()
+            .map_err(|_| "actuator count changed while reading".to_string())?;
+        // Gymnasium's init_qpos is the model's qpos0 (torso at 0.75 m, upright, joints at 0).
+        let mut init_qpos = [0.0; NQ];
+        init_qpos.copy_from_slice(model.qpos0());
+        Ok(Self {
+            actuators,
+            torso_body,
+            init_qpos,
+        })
+    }
+}
+
+fn validate_action(action: &[f64]) -> Result<Action, EnvError> {
+    if action.len() != ACT_DIM {
+        return Err(EnvError::ActionLength {
+            expected: ACT_DIM,
+            got: action.len(),
+        });
+    }
+    let mut clipped = [0.0; ACT_DIM];
+    for (i, (&a, out)) in action.iter().zip(&mut clipped).enumerate() {
+        if !a.is_finite() {
+            return Err(EnvError::NonFiniteAction { index: i, value: a });
+        }
+        *out = a.clamp(-1.0, 1.0);
+    }
+    Ok(clipped)
+}
+
+fn check_state_vector(name: &str, values: &[f64], expected: usize) -> Result<(), EnvError> {
+    if values.len() != expected {
+        return Err(EnvError::BadState(format!(
+            "{name} has {} values, the Ant needs {expected}",
+            values.len()
+        )));
+    }
+    if let Some((i, v)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(EnvError::BadState(format!(
+            "{name}[{i}] is {v}; the state must be finite"
+        )));
+    }
+    Ok(())
+}

@@ -1,0 +1,16 @@
+//! gaitscope: watch, train and debug legged-robot policies that adapt to joint damage.
+//!
+//! Data flows one way: physics ([`env`]) → damage ([`damage`]) → policy → telemetry.
+//! The context window ([`window`]) is what a context-encoder policy reads.
+
+pub mod bench;
+pub mod config;
+pub mod damage;
+pub mod env;
+pub mod rollout;
+pub mod window;
+
+pub use config::GaitConfig;
+pub use damage::{Condition, ConditionChoice, DamageEvent, DamageState, JointOverride};
+pub use env::{AntEnv, EnvError, Observation, StepOutcome};
+pub use window::ContextWindow;
