@@ -1,1 +1,177 @@
-fn main() {}
+//! The `gaitscope` command line: a thin layer over the library.
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use std::io::{BufWriter, Write};
+use std::path::PathBuf;
+
+use gaitscope::bench::bench_env;
+use gaitscope::rollout::{self, BuiltinPolicy};
+use gaitscope::{AntEnv, Condition, ConditionChoice, GaitConfig};
+
+#[derive(Parser)]
+#[command(
+    name = "gaitscope",
+    version,
+    about = "Watch, train and debug legged-robot policies that adapt to joint damage"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run episodes with a built-in policy, or replay an action sequence from a given state.
+    Rollout(RolloutArgs),
+    /// Measure performance.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+/// Options shared by every command that builds an env.
+#[derive(Args)]
+struct EnvArgs {
+    /// JSON config (any subset of the fields; the rest keep their defaults).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// MJCF model to load instead of the bundled assets/ant.xml.
+    #[arg(long, value_name = "FILE")]
+    model: Option<PathBuf>,
+}
+
+impl EnvArgs {
+    fn load(&self) -> Result<GaitConfig> {
+        let mut config = match &self.config {
+            Some(path) => GaitConfig::from_json_file(path)?,
+            None => GaitConfig::default(),
+        };
+        if let Some(model) = &self.model {
+            config.env.model_path = Some(model.clone());
+        }
+        Ok(config)
+    }
+}
+
+#[derive(Args)]
+struct RolloutArgs {
+    #[command(flatten)]
+    env: EnvArgs,
+    /// Damage condition; without it each episode draws one at random.
+    #[arg(long, value_name = "healthy|mild|severe")]
+    condition: Option<Condition>,
+    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random, conflicts_with = "init_state")]
+    policy: BuiltinPolicy,
+    #[arg(long, default_value_t = 5, conflicts_with = "init_state")]
+    episodes: usize,
+    /// Episode k is reset with seed S + k.
+    #[arg(long, default_value_t = 0, conflicts_with = "init_state")]
+    seed: u64,
+    /// Truncate episodes after this many steps (default: the config's, 1000).
+    #[arg(long)]
+    max_steps: Option<usize>,
+    /// One JSON object per episode instead of a text line.
+    #[arg(long, conflicts_with = "init_state")]
+    json: bool,
+    /// Replay: the starting state, {"qpos": [15], "qvel": [14]}.
+    #[arg(long, value_name = "FILE", requires = "actions")]
+    init_state: Option<PathBuf>,
+    /// Replay: the actions, [[8 numbers], ...].
+    #[arg(long, value_name = "FILE", requires = "init_state")]
+    actions: Option<PathBuf>,
+    /// Replay output: one JSON line per step, the state after that step.
+    #[arg(long, requires = "init_state")]
+    jsonl: bool,
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Env steps/s with random actions against bare MuJoCo on the same model.
+    Env {
+        #[arg(long, default_value_t = 20_000)]
+        steps: usize,
+        #[arg(long, default_value_t = 5)]
+        runs: usize,
+        #[command(flatten)]
+        env: EnvArgs,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    if let Err(err) = run(cli) {
+        if is_broken_pipe(&err) {
+            return; // e.g. `gaitscope rollout --jsonl ... | head`
+        }
+        eprintln!("error: {err:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Rollout(args) => rollout_command(args),
+        Command::Bench(BenchCommand::Env { steps, runs, env }) => {
+            if steps == 0 {
+                bail!("--steps must be at least 1");
+            }
+            let report = bench_env(&env.load()?, steps, runs)?;
+            println!("{report}");
+            Ok(())
+        }
+    }
+}
+
+fn rollout_command(args: RolloutArgs) -> Result<()> {
+    let mut config = args.env.load()?;
+    if let Some(max_steps) = args.max_steps {
+        config.env.max_episode_steps = max_steps;
+    }
+    if let Some(condition) = args.condition {
+        config.damage.condition = ConditionChoice::Fixed(condition);
+    }
+    let mut out = BufWriter::new(std::io::stdout().lock());
+
+    if let (Some(init_path), Some(actions_path)) = (&args.init_state, &args.actions) {
+        let Some(condition) = args.condition else {
+            bail!(
+                "replay needs --condition healthy|mild|severe (the damage scale must be explicit)"
+            );
+        };
+        let init = rollout::read_init_state(init_path)?;
+        let actions = rollout::read_actions(actions_path)?;
+        let mut env = AntEnv::new(config, 0)?;
+        rollout::replay(&mut env, &init, condition, &actions, |record| {
+            serde_json::to_writer(&mut out, record)?;
+            writeln!(out)
+        })?;
+        out.flush()?;
+        return Ok(());
+    }
+
+    if args.episodes == 0 {
+        bail!("--episodes must be at least 1");
+    }
+    let mut env = AntEnv::new(config, args.seed)?;
+    for episode in 0..args.episodes {
+        let seed = args.seed.wrapping_add(episode as u64);
+        let summary = rollout::run_builtin_episode(&mut env, args.policy, episode, seed)
+            .with_context(|| format!("episode {episode} (seed {seed})"))?;
+        if args.json {
+            serde_json::to_writer(&mut out, &summary)?;
+            writeln!(out)?;
+        } else {
+            writeln!(out, "{summary}")?;
+        }
+        out.flush()?;
+    }
+    Ok(())
+}
+
+fn is_broken_pipe(err: &anyhow::Error) -> bool {
+    err.chain().any(|cause| {
+        cause
+            .downcast_ref::<std::io::Error>()
+            .is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe)
+    })
+}

@@ -1,1 +1,289 @@
+//! Rollouts with built-in policies, and deterministic replay of an action sequence.
+//!
+//! Replay is how anyone checks our physics against another implementation (e.g. Gymnasium's
+//! Ant-v4), so its file formats are fixed:
+//! - init state: `{"qpos": [15 numbers], "qvel": [14 numbers]}`
+//! - actions: `[[8 numbers], ...]`
+//! - output: one [`StepRecord`] JSON object per line, the state after step `t`.
 
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::damage::{Condition, N_ACTUATORS};
+use crate::env::{ACT_DIM, Action, AntEnv, EnvError, NQ, NV, StepOutcome};
+
+/// Policies that need no checkpoint.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BuiltinPolicy {
+    /// Uniform in [−1, 1]⁸ from a seeded RNG.
+    Random,
+    /// All zeros: the Ant stands still.
+    Zero,
+}
+
+impl BuiltinPolicy {
+    pub fn act(self, rng: &mut impl Rng) -> Action {
+        match self {
+            BuiltinPolicy::Random => std::array::from_fn(|_| rng.random_range(-1.0..=1.0)),
+            BuiltinPolicy::Zero => [0.0; ACT_DIM],
+        }
+    }
+}
+
+/// One episode in a line (or one JSON object).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EpisodeSummary {
+    pub episode: usize,
+    pub seed: u64,
+    pub condition: Condition,
+    pub steps: usize,
+    pub success: bool,
+    pub terminated: bool,
+    pub truncated: bool,
+    pub final_distance: f64,
+    #[serde(rename = "return")]
+    pub episode_return: f64,
+    /// First fatigue trigger step per joint, `None` if the joint never triggered.
+    pub trigger_steps: BTreeMap<String, Option<usize>>,
+}
+
+/// Runs one episode of a built-in policy. The env is reset with `seed` and the policy's RNG is
+/// seeded from it too, so an episode is reproducible on its own.
+pub fn run_builtin_episode(
+    env: &mut AntEnv,
+    policy: BuiltinPolicy,
+    episode: usize,
+    seed: u64,
+) -> Result<EpisodeSummary, EnvError> {
+    env.reset_with_seed(seed);
+    // A distinct stream from the env's, so the policy does not shift the env's draws.
+    let mut policy_rng = ChaCha8Rng::seed_from_u64(seed ^ 0x9E37_79B9_7F4A_7C15);
+    let mut episode_return = 0.0;
+    let last = loop {
+        let out = env.step(&policy.act(&mut policy_rng))?;
+        episode_return += out.reward.total;
+        if out.done() {
+            break out;
+        }
+    };
+    Ok(summarize(env, episode, seed, &last, episode_return))
+}
+
+/// The summary of an episode that has just ended with `last`.
+pub fn summarize(
+    env: &AntEnv,
+    episode: usize,
+    seed: u64,
+    last: &StepOutcome,
+    episode_return: f64,
+) -> EpisodeSummary {
+    let damage = env.damage();
+    let trigger_steps = damage
+        .joint_names()
+        .iter()
+        .cloned()
+        .zip(damage.first_trigger_steps())
+        .collect();
+    EpisodeSummary {
+        episode,
+        seed,
+        condition: damage.condition(),
+        steps: last.step + 1,
+        success: last.success,
+        terminated: last.terminated,
+        truncated: last.truncated,
+        final_distance: last.distance,
+        episode_return,
+        trigger_steps,
+    }
+}
+
+impl std::fmt::Display for EpisodeSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let outcome = if self.success {
+            "success"
+        } else if self.terminated {
+            "unhealthy"
+        } else {
+            "timeout"
+        };
+        write!(
+            f,
+            "episode {:>3}  seed {:<6} {:<7}  {:>4} steps  {:<9}  final distance {:6.2} m  return {:9.1}  triggers:",
+            self.episode,
+            self.seed,
+            self.condition.name(),
+            self.steps,
+            outcome,
+            self.final_distance,
+            self.episode_return
+        )?;
+        for (joint, step) in &self.trigger_steps {
+            match step {
+                Some(s) => write!(f, " {joint}@{s}")?,
+                None => write!(f, " {joint}@-")?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The state after one replayed step; the JSONL line format of `rollout --jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepRecord {
+    pub step: usize,
+    pub obs: Vec<f64>,
+    pub reward: f64,
+    pub terminated: bool,
+    pub truncated: bool,
+    pub fatigue: [f64; N_ACTUATORS],
+    pub triggered: [bool; N_ACTUATORS],
+    pub applied_action: [f64; N_ACTUATORS],
+    pub torso_xy: [f64; 2],
+    pub qpos: Vec<f64>,
+    pub qvel: Vec<f64>,
+}
+
+impl StepRecord {
+    pub fn capture(env: &AntEnv, out: &StepOutcome) -> Self {
+        Self {
+            step: out.step,
+            obs: out.obs.to_vec(),
+            reward: out.reward.total,
+            terminated: out.terminated,
+            truncated: out.truncated,
+            fatigue: *env.damage().fatigue(),
+            triggered: *env.damage().triggered(),
+            applied_action: out.applied_action,
+            torso_xy: env.torso_xy(),
+            qpos: env.qpos().to_vec(),
+            qvel: env.qvel().to_vec(),
+        }
+    }
+}
+
+/// The starting state of a replay.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InitState {
+    pub qpos: Vec<f64>,
+    pub qvel: Vec<f64>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error("cannot read {what} file {path}: {source}")]
+    Read {
+        what: &'static str,
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{what} file {path} is malformed: {reason}")]
+    Malformed {
+        what: &'static str,
+        path: PathBuf,
+        reason: String,
+    },
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error("writing replay output: {0}")]
+    Write(#[source] std::io::Error),
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(
+    what: &'static str,
+    path: &Path,
+    expected: &str,
+) -> Result<T, ReplayError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ReplayError::Read {
+        what,
+        path: path.to_owned(),
+        source,
+    })?;
+    serde_json::from_str(&text).map_err(|e| ReplayError::Malformed {
+        what,
+        path: path.to_owned(),
+        reason: format!("{e} (expected {expected})"),
+    })
+}
+
+/// Reads `{"qpos": [15], "qvel": [14]}` and checks lengths and finiteness.
+pub fn read_init_state(path: &Path) -> Result<InitState, ReplayError> {
+    const WHAT: &str = "init-state";
+    let state: InitState = read_json(
+        WHAT,
+        path,
+        "{\"qpos\": [15 numbers], \"qvel\": [14 numbers]}",
+    )?;
+    let malformed = |reason: String| ReplayError::Malformed {
+        what: WHAT,
+        path: path.to_owned(),
+        reason,
+    };
+    for (name, values, n) in [("qpos", &state.qpos, NQ), ("qvel", &state.qvel, NV)] {
+        if values.len() != n {
+            return Err(malformed(format!(
+                "{name} has {} numbers, expected {n}",
+                values.len()
+            )));
+        }
+    }
+    Ok(state)
+}
+
+/// Reads `[[8 numbers], ...]` and checks every row.
+pub fn read_actions(path: &Path) -> Result<Vec<Action>, ReplayError> {
+    const WHAT: &str = "actions";
+    let rows: Vec<Vec<f64>> = read_json(WHAT, path, "[[8 numbers], ...]")?;
+    let malformed = |reason: String| ReplayError::Malformed {
+        what: WHAT,
+        path: path.to_owned(),
+        reason,
+    };
+    if rows.is_empty() {
+        return Err(malformed("no actions (an empty list)".into()));
+    }
+    rows.iter()
+        .enumerate()
+        .map(|(t, row)| {
+            let action: Action = row.as_slice().try_into().map_err(|_| {
+                malformed(format!(
+                    "actions[{t}] has {} numbers, expected {ACT_DIM}",
+                    row.len()
+                ))
+            })?;
+            if let Some((i, v)) = action.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+                return Err(malformed(format!(
+                    "actions[{t}][{i}] is {v}, expected a finite number"
+                )));
+            }
+            Ok(action)
+        })
+        .collect()
+}
+
+/// Replays `actions` from `init` under `condition`, handing each step's record to `sink`.
+/// Stops at the end of the actions or when the episode ends; returns the steps replayed.
+pub fn replay(
+    env: &mut AntEnv,
+    init: &InitState,
+    condition: Condition,
+    actions: &[Action],
+    mut sink: impl FnMut(&StepRecord) -> std::io::Result<()>,
+) -> Result<usize, ReplayError> {
+    env.reset_to_state(&init.qpos, &init.qvel, condition)?;
+    let mut steps = 0;
+    for action in actions {
+        let out = env.step(action)?;
+        sink(&StepRecord::capture(env, &out)).map_err(ReplayError::Write)?;
+        steps += 1;
+        if out.done() {
+            break;
+        }
+    }
+    Ok(steps)
+}
