@@ -393,6 +393,16 @@ impl AntEnv {
     }
 }
 
+/// Keeps MuJoCo's warnings on the console instead of also appending them to `MUJOCO_LOG.TXT` in
+/// the working directory.
+///
+/// # Safety
+/// Changes MuJoCo's global log configuration: call it before any other thread uses MuJoCo.
+pub unsafe fn keep_mujoco_logs_on_console() {
+    // SAFETY: forwarded to the caller.
+    unsafe { set_log_config(log_config().with_logto_file(false)) }
+}
+
 fn load_model(path: Option<&Path>) -> Result<(MjModel, String), EnvError> {
     match path {
         None => {

@@ -99,6 +99,8 @@ enum BenchCommand {
 
 fn main() {
     let cli = Cli::parse();
+    // SAFETY: no other thread exists yet.
+    unsafe { gaitscope::env::keep_mujoco_logs_on_console() };
     if let Err(err) = run(cli) {
         if is_broken_pipe(&err) {
             return; // e.g. `gaitscope rollout --jsonl ... | head`
