@@ -191,3 +191,102 @@ impl BareAnt {
         }
     }
 }
+
+/// `gaitscope bench train`: training throughput per encoder, against the update alone.
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainBenchRow {
+    pub encoder: crate::policy::EncoderKind,
+    /// Env steps/s with one update per step (acting, env, replay, update).
+    pub train_steps_per_s: f64,
+    /// Updates/s with no env: sample a batch, forward and backward passes, optimiser steps.
+    pub updates_per_s: f64,
+    /// Actor forward passes/s at batch 1 (acting).
+    pub act_per_s: f64,
+}
+
+/// Measures each encoder: a short real training run (after warm-up), then updates alone.
+pub fn bench_train(
+    encoders: &[crate::policy::EncoderKind],
+    steps: u64,
+    scratch: &std::path::Path,
+) -> Result<Vec<TrainBenchRow>, crate::train::TrainError> {
+    use crate::policy::{ActionMode, SacModel};
+    use crate::train::replay::{Batch, ReplayBuffer, Transition};
+    use crate::train::sac::SacLearner;
+    use crate::train::{self, AntTask, Task};
+    use std::sync::Arc;
+    use std::sync::atomic::AtomicBool;
+
+    let mut rows = Vec::new();
+    for &encoder in encoders {
+        // 1. The real loop: warm-up of 1,000 random steps, then `steps` learning steps.
+        let dir = scratch.join(format!("bench-{encoder}"));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut opts = train::ant_options(encoder, 1_000 + steps, 0, dir.clone());
+        opts.sac.learning_starts = 1_000;
+        opts.save_replay = false;
+        opts.progress_bar = false;
+        opts.checkpoint_every = u64::MAX;
+        let summary = train::train_ant(opts.clone(), false, Arc::new(AtomicBool::new(false)))?;
+        let _ = std::fs::remove_dir_all(&dir);
+
+        // 2. Updates alone, on a buffer of random transitions.
+        let net = opts.net.clone();
+        let device = candle_core::Device::Cpu;
+        let model = SacModel::new(net.clone(), 1.0, 0, &device)?;
+        let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
+        let window_len = if encoder.uses_window() { net.context_len } else { 0 };
+        let mut replay = ReplayBuffer::new(5_000, net.obs_dim, net.act_dim, window_len);
+        let mut task = AntTask(AntEnv::new(GaitConfig::default(), 0)?);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut obs = task.reset_with_seed(0);
+        let mut t = 0;
+        for _ in 0..5_000 {
+            let action: Vec<f64> = (0..net.act_dim).map(|_| rng.random_range(-1.0..=1.0)).collect();
+            let step = task.step(&action)?;
+            replay.push(Transition {
+                obs: &obs,
+                action: &action,
+                reward: step.reward,
+                next_obs: &step.obs,
+                terminated: step.terminated,
+                truncated: step.truncated,
+                t_in_episode: t,
+            });
+            (obs, t) = if step.terminated || step.truncated { (task.reset(), 0) } else { (step.obs, t + 1) };
+        }
+        let mut batch = Batch::default();
+        let n_updates = (steps / 2).max(20);
+        let start = Instant::now();
+        for _ in 0..n_updates {
+            replay.sample(opts.sac.batch_size, &mut rng, &mut batch);
+            learner.update(&batch, &mut rng)?;
+        }
+        let updates_per_s = n_updates as f64 / start.elapsed().as_secs_f64();
+
+        // 3. Acting at batch 1.
+        let obs32 = vec![0.1f32; net.obs_dim];
+        let window = vec![0.1f32; net.context_len * net.entry_dim()];
+        let noise = vec![0.0f32; net.act_dim];
+        let start = Instant::now();
+        let n_act = 2_000;
+        for _ in 0..n_act {
+            learner.model.actor.decide(
+                &net,
+                &device,
+                &obs32,
+                encoder.uses_window().then_some(&window[..]),
+                ActionMode::Sampled,
+                Some(&noise),
+            )?;
+        }
+        let act_per_s = n_act as f64 / start.elapsed().as_secs_f64();
+        rows.push(TrainBenchRow {
+            encoder,
+            train_steps_per_s: summary.learning_steps_per_s.unwrap_or(f64::NAN),
+            updates_per_s,
+            act_per_s,
+        });
+    }
+    Ok(rows)
+}

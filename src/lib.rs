@@ -7,7 +7,9 @@ pub mod bench;
 pub mod config;
 pub mod damage;
 pub mod env;
+pub mod policy;
 pub mod rollout;
+pub mod train;
 pub mod window;
 
 pub use config::GaitConfig;

@@ -6,6 +6,10 @@ use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 
 use gaitscope::bench::bench_env;
+use gaitscope::policy::EncoderKind;
+use gaitscope::train;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use gaitscope::rollout::{self, BuiltinPolicy};
 use gaitscope::{AntEnv, Condition, ConditionChoice, GaitConfig};
 
@@ -24,6 +28,8 @@ struct Cli {
 enum Command {
     /// Run episodes with a built-in policy, or replay an action sequence from a given state.
     Rollout(RolloutArgs),
+    /// Train a SAC policy (optionally with a context encoder) on the damaged Ant.
+    Train(TrainArgs),
     /// Measure performance.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -84,6 +90,43 @@ struct RolloutArgs {
     jsonl: bool,
 }
 
+#[derive(Args)]
+struct TrainArgs {
+    /// Feature extractor: none (baseline), lstm (the paper's), mlp-window (ablation).
+    #[arg(long, value_enum, default_value_t = EncoderKind::Lstm)]
+    encoder: EncoderKind,
+    /// Total env steps (a resumed run stops at the same total).
+    #[arg(long, default_value_t = 500_000)]
+    steps: u64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Run folder: checkpoint, optimiser state, replay buffer, metrics.jsonl.
+    #[arg(long, value_name = "DIR", required_unless_present = "resume", conflicts_with = "resume")]
+    out: Option<PathBuf>,
+    /// Continue the run in DIR (weights, optimiser, RNGs, step counter, replay buffer).
+    #[arg(long, value_name = "DIR")]
+    resume: Option<PathBuf>,
+    #[arg(long, default_value_t = 10_000)]
+    checkpoint_every: u64,
+    /// Skip saving the replay buffer (~80 MB) with checkpoints; a resume then refills it.
+    #[arg(long)]
+    no_save_replay: bool,
+    /// One encoder for actor and critic (SB3's share_features_extractor).
+    #[arg(long)]
+    share_encoder: bool,
+    #[arg(long)]
+    batch_size: Option<usize>,
+    #[arg(long)]
+    buffer_size: Option<usize>,
+    #[arg(long)]
+    learning_starts: Option<usize>,
+    /// No progress bar (logs still go to metrics.jsonl).
+    #[arg(long)]
+    quiet: bool,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
 #[derive(Subcommand)]
 enum BenchCommand {
     /// Env steps/s with random actions against bare MuJoCo on the same model.
@@ -95,9 +138,24 @@ enum BenchCommand {
         #[command(flatten)]
         env: EnvArgs,
     },
+    /// Training env steps/s per encoder (one update per step) against the updates alone.
+    Train {
+        /// Learning steps to time per encoder (after a 1,000-step random warm-up).
+        #[arg(long, default_value_t = 1_000)]
+        steps: u64,
+        #[arg(long, value_enum, num_args = 1.., default_values_t = [EncoderKind::None, EncoderKind::Lstm, EncoderKind::MlpWindow])]
+        encoders: Vec<EncoderKind>,
+    },
 }
 
 fn main() {
+    // candle asks for the thread count on every matmul; unset, that re-parses /proc/cpuinfo each
+    // time, and on this 2-core machine its 2-thread GEMM is slower than 1 thread at our sizes
+    // (measured: 30 vs 53 training steps/s). Set before any thread exists.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        // SAFETY: single-threaded here; nothing reads the environment concurrently.
+        unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
+    }
     let cli = Cli::parse();
     // SAFETY: no other thread exists yet.
     unsafe { gaitscope::env::keep_mujoco_logs_on_console() };
@@ -113,12 +171,32 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Rollout(args) => rollout_command(args),
+        Command::Train(args) => train_command(args),
         Command::Bench(BenchCommand::Env { steps, runs, env }) => {
             if steps == 0 {
                 bail!("--steps must be at least 1");
             }
             let report = bench_env(&env.load()?, steps, runs)?;
             println!("{report}");
+            Ok(())
+        }
+        Command::Bench(BenchCommand::Train { steps, encoders }) => {
+            if steps == 0 {
+                bail!("--steps must be at least 1");
+            }
+            let scratch = std::env::temp_dir().join(format!("gaitscope-bench-{}", std::process::id()));
+            let rows = gaitscope::bench::bench_train(&encoders, steps, &scratch)?;
+            let _ = std::fs::remove_dir_all(&scratch);
+            println!("encoder     train steps/s  updates/s (no env)  act/s (batch 1)");
+            for r in rows {
+                println!(
+                    "{:<11} {:>13.1}  {:>18.1}  {:>15.0}",
+                    r.encoder.name(),
+                    r.train_steps_per_s,
+                    r.updates_per_s,
+                    r.act_per_s
+                );
+            }
             Ok(())
         }
     }
@@ -167,6 +245,42 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
         }
         out.flush()?;
     }
+    Ok(())
+}
+
+fn train_command(args: TrainArgs) -> Result<()> {
+    let resume = args.resume.is_some();
+    let Some(out) = args.resume.clone().or(args.out.clone()) else {
+        bail!("train needs --out DIR (or --resume DIR)");
+    };
+    let mut opts = train::ant_options(args.encoder, args.steps, args.seed, out.clone());
+    opts.env = args.env.load()?;
+    opts.net.share_encoder = args.share_encoder;
+    opts.checkpoint_every = args.checkpoint_every;
+    opts.save_replay = !args.no_save_replay;
+    opts.progress_bar = !args.quiet;
+    if let Some(b) = args.batch_size {
+        opts.sac.batch_size = b;
+    }
+    if let Some(b) = args.buffer_size {
+        opts.sac.buffer_size = b;
+    }
+    if let Some(l) = args.learning_starts {
+        opts.sac.learning_starts = l;
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed)).context("installing the Ctrl-C handler")?;
+    let summary = train::train_ant(opts, resume, stop)?;
+    let how = if summary.interrupted { "interrupted; checkpoint saved" } else { "done" };
+    eprintln!(
+        "{how}: {} steps, {} episodes, {:.0} s, {:.1} steps/s → {}",
+        summary.steps_done,
+        summary.episodes_done,
+        summary.wall_time_s,
+        summary.steps_per_s,
+        out.display()
+    );
     Ok(())
 }
 

@@ -7,12 +7,14 @@
 use crate::damage::N_ACTUATORS;
 use crate::env::OBS_DIM;
 
-/// Values per window entry: observation then action.
+/// Values per window entry for the Ant: observation (29) then action (8).
 pub const ENTRY_DIM: usize = OBS_DIM + N_ACTUATORS;
 
 #[derive(Debug, Clone)]
 pub struct ContextWindow {
     len: usize,
+    obs_dim: usize,
+    act_dim: usize,
     /// 2·len entries; entries `[head, head + len)` are the window, oldest first.
     storage: Vec<f32>,
     head: usize,
@@ -20,14 +22,21 @@ pub struct ContextWindow {
 }
 
 impl ContextWindow {
+    /// A window of `len` Ant (obs, action) pairs.
     pub fn new(len: usize) -> Self {
+        Self::with_dims(len, OBS_DIM, N_ACTUATORS)
+    }
+
+    /// A window for any task with `obs_dim` observations and `act_dim` actions.
+    pub fn with_dims(len: usize, obs_dim: usize, act_dim: usize) -> Self {
         assert!(len > 0, "context window length must be positive");
-        Self {
-            len,
-            storage: vec![0.0; 2 * len * ENTRY_DIM],
-            head: 0,
-            filled: 0,
-        }
+        let entry = obs_dim + act_dim;
+        Self { len, obs_dim, act_dim, storage: vec![0.0; 2 * len * entry], head: 0, filled: 0 }
+    }
+
+    /// Values per entry: observation then action.
+    pub fn entry_dim(&self) -> usize {
+        self.obs_dim + self.act_dim
     }
 
     /// Number of (obs, action) pairs the window holds.
@@ -45,14 +54,14 @@ impl ContextWindow {
         self.filled
     }
 
-    /// Length of [`Self::as_slice`]: `len × 37`.
+    /// Length of [`Self::as_slice`]: `len × 37` for the Ant.
     pub fn flat_dim(&self) -> usize {
-        self.len * ENTRY_DIM
+        self.len * self.entry_dim()
     }
 
-    /// Length of the encoder input: window then current observation (621 for k = 16).
+    /// Length of the encoder input: window then current observation (621 for the Ant, k = 16).
     pub fn encoder_input_dim(&self) -> usize {
-        self.flat_dim() + OBS_DIM
+        self.flat_dim() + self.obs_dim
     }
 
     /// Forgets everything (episode reset): the window is all padding again.
@@ -63,10 +72,12 @@ impl ContextWindow {
     }
 
     /// Appends the observation the policy saw and the action it commanded.
-    pub fn push(&mut self, obs: &[f64; OBS_DIM], action: &[f64; N_ACTUATORS]) {
+    pub fn push(&mut self, obs: &[f64], action: &[f64]) {
+        assert_eq!((obs.len(), action.len()), (self.obs_dim, self.act_dim), "window entry dims");
         let slot = self.head;
+        let entry_dim = self.entry_dim();
         for copy in [slot, slot + self.len] {
-            let entry = &mut self.storage[copy * ENTRY_DIM..(copy + 1) * ENTRY_DIM];
+            let entry = &mut self.storage[copy * entry_dim..(copy + 1) * entry_dim];
             for (dst, src) in entry.iter_mut().zip(obs.iter().chain(action)) {
                 *dst = *src as f32;
             }
@@ -77,12 +88,13 @@ impl ContextWindow {
 
     /// The window, `len × 37` values, oldest entry first.
     pub fn as_slice(&self) -> &[f32] {
-        &self.storage[self.head * ENTRY_DIM..(self.head + self.len) * ENTRY_DIM]
+        let entry_dim = self.entry_dim();
+        &self.storage[self.head * entry_dim..(self.head + self.len) * entry_dim]
     }
 
     /// Writes the encoder input (window then `obs`) into `out`, which must hold
     /// [`Self::encoder_input_dim`] values.
-    pub fn write_encoder_input(&self, obs: &[f64; OBS_DIM], out: &mut [f32]) {
+    pub fn write_encoder_input(&self, obs: &[f64], out: &mut [f32]) {
         let (window, current) = out.split_at_mut(self.flat_dim());
         window.copy_from_slice(self.as_slice());
         for (dst, src) in current.iter_mut().zip(obs) {

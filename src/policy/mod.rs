@@ -1,0 +1,483 @@
+//! SAC networks with an optional context encoder, and the inference API eval and the viewer use.
+//!
+//! Features, by encoder (SB3 SAC, the paper's Table 1):
+//! - `none`: the observation (29).
+//! - `lstm`: LSTM(37 → 32) over the 16-step window, z = final hidden state; features = [z, obs].
+//! - `mlp-window`: MLP over the flattened window → 32, tanh; features = [z, obs].
+//!
+//! The actor is features → MLP [256, 256] ReLU → mean, log-std (clamped to [−20, 2]) → tanh-squashed
+//! Gaussian; each critic is [features, action] → MLP [256, 256] → 1. Actor and critics own separate
+//! encoders unless `share_encoder` (then, as in SB3, the actor owns it and the critic reads it
+//! without gradient).
+
+pub mod checkpoint;
+pub mod layers;
+
+use candle_core::{D, Device, Result, Tensor, Var};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use layers::{Grad, Linear, Lstm, Mlp, ParamStore};
+
+pub use checkpoint::{CheckpointError, CheckpointMeta};
+
+pub const LOG_STD_MIN: f64 = -20.0;
+pub const LOG_STD_MAX: f64 = 2.0;
+/// SB3's epsilon in the tanh log-prob correction log(1 − tanh(u)² + ε).
+pub const TANH_EPS: f64 = 1e-6;
+
+/// Which feature extractor a model uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum EncoderKind {
+    /// Memoryless baseline: the observation only.
+    None,
+    /// The paper's context encoder.
+    Lstm,
+    /// The ablation: an MLP over the flattened window.
+    MlpWindow,
+}
+
+impl EncoderKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            EncoderKind::None => "none",
+            EncoderKind::Lstm => "lstm",
+            EncoderKind::MlpWindow => "mlp-window",
+        }
+    }
+
+    pub fn uses_window(self) -> bool {
+        self != EncoderKind::None
+    }
+}
+
+impl std::fmt::Display for EncoderKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Shapes of a model; stored in `checkpoint.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NetConfig {
+    pub encoder: EncoderKind,
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    /// Window length k (ignored by `none`).
+    pub context_len: usize,
+    pub z_dim: usize,
+    /// Hidden sizes of the actor and critic MLPs.
+    pub hidden: Vec<usize>,
+    /// Hidden sizes of the `mlp-window` encoder.
+    pub window_mlp_hidden: Vec<usize>,
+    pub share_encoder: bool,
+}
+
+impl NetConfig {
+    /// The paper's model for the Ant.
+    pub fn ant(encoder: EncoderKind) -> Self {
+        Self {
+            encoder,
+            obs_dim: crate::env::OBS_DIM,
+            act_dim: crate::env::ACT_DIM,
+            context_len: 16,
+            z_dim: 32,
+            hidden: vec![256, 256],
+            window_mlp_hidden: vec![256],
+            share_encoder: false,
+        }
+    }
+
+    pub fn entry_dim(&self) -> usize {
+        self.obs_dim + self.act_dim
+    }
+
+    pub fn features_dim(&self) -> usize {
+        match self.encoder {
+            EncoderKind::None => self.obs_dim,
+            _ => self.z_dim + self.obs_dim,
+        }
+    }
+}
+
+/// SAC hyperparameters (Stable-Baselines3 defaults, the paper's Table 1); stored in
+/// `checkpoint.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SacConfig {
+    pub gamma: f64,
+    /// Polyak coefficient of the target critic.
+    pub tau: f64,
+    pub learning_rate: f64,
+    pub batch_size: usize,
+    pub buffer_size: usize,
+    /// Uniformly random actions (and no updates) for this many env steps.
+    pub learning_starts: usize,
+    pub initial_alpha: f64,
+    /// Target entropy; `None` means −act_dim (−8 for the Ant).
+    pub target_entropy: Option<f64>,
+}
+
+impl Default for SacConfig {
+    fn default() -> Self {
+        Self {
+            gamma: 0.99,
+            tau: 0.005,
+            learning_rate: 3e-4,
+            batch_size: 256,
+            buffer_size: 300_000,
+            learning_starts: 100,
+            initial_alpha: 1.0,
+            target_entropy: None,
+        }
+    }
+}
+
+/// A batch of policy inputs: the window `(B, k, obs+act)` (absent for `none`) and obs `(B, obs)`.
+#[derive(Debug, Clone)]
+pub struct PolicyInput {
+    pub window: Option<Tensor>,
+    pub obs: Tensor,
+}
+
+impl PolicyInput {
+    /// Builds a batch from flat host buffers: `obs` is B × obs_dim, `window` B × k × entry.
+    pub fn from_slices(
+        net: &NetConfig,
+        obs: &[f32],
+        window: Option<&[f32]>,
+        device: &Device,
+    ) -> Result<Self> {
+        let b = obs.len() / net.obs_dim;
+        let obs = Tensor::from_slice(obs, (b, net.obs_dim), device)?;
+        let window = match (net.encoder.uses_window(), window) {
+            (true, Some(w)) => Some(Tensor::from_slice(w, (b, net.context_len, net.entry_dim()), device)?),
+            (true, None) => candle_core::bail!("encoder {} needs a context window", net.encoder),
+            (false, _) => None,
+        };
+        Ok(Self { window, obs })
+    }
+
+    pub fn batch_size(&self) -> usize {
+        self.obs.dims()[0]
+    }
+}
+
+/// Maps (window, obs) to features, exposing z.
+#[derive(Debug, Clone)]
+pub enum Encoder {
+    None,
+    Lstm(Lstm),
+    MlpWindow(Mlp),
+}
+
+impl Encoder {
+    pub fn new(
+        net: &NetConfig,
+        store: &mut ParamStore,
+        name: &str,
+        rng: &mut ChaCha8Rng,
+        device: &Device,
+    ) -> Result<Self> {
+        Ok(match net.encoder {
+            EncoderKind::None => Encoder::None,
+            EncoderKind::Lstm => Encoder::Lstm(Lstm::new(
+                store,
+                &format!("{name}.lstm"),
+                net.entry_dim(),
+                net.z_dim,
+                rng,
+                device,
+            )?),
+            EncoderKind::MlpWindow => {
+                let mut dims = vec![net.context_len * net.entry_dim()];
+                dims.extend(&net.window_mlp_hidden);
+                dims.push(net.z_dim);
+                Encoder::MlpWindow(Mlp::new(store, &format!("{name}.mlp"), &dims, false, rng, device)?)
+            }
+        })
+    }
+
+    /// Returns (features, z).
+    pub fn forward(&self, input: &PolicyInput, grad: Grad) -> Result<(Tensor, Option<Tensor>)> {
+        let z = match (self, &input.window) {
+            (Encoder::None, _) => return Ok((input.obs.clone(), None)),
+            (Encoder::Lstm(lstm), Some(w)) => lstm.forward(w, grad)?,
+            (Encoder::MlpWindow(mlp), Some(w)) => {
+                let b = w.dims()[0];
+                mlp.forward(&w.reshape((b, ()))?, grad)?.tanh()?
+            }
+            (_, None) => candle_core::bail!("this encoder needs a context window"),
+        };
+        let features = Tensor::cat(&[&z, &input.obs], D::Minus1)?;
+        Ok((features, Some(z)))
+    }
+}
+
+/// Output of the actor for a batch.
+#[derive(Debug, Clone)]
+pub struct ActorOutput {
+    pub mean: Tensor,
+    /// Clamped to [LOG_STD_MIN, LOG_STD_MAX].
+    pub log_std: Tensor,
+    pub z: Option<Tensor>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Actor {
+    pub encoder: Encoder,
+    trunk: Mlp,
+    mean: Linear,
+    log_std: Linear,
+}
+
+impl Actor {
+    pub fn new(net: &NetConfig, store: &mut ParamStore, rng: &mut ChaCha8Rng, device: &Device) -> Result<Self> {
+        let encoder = Encoder::new(net, store, "actor.encoder", rng, device)?;
+        let mut dims = vec![net.features_dim()];
+        dims.extend(&net.hidden);
+        let last = *dims.last().unwrap_or(&net.features_dim());
+        Ok(Self {
+            encoder,
+            trunk: Mlp::new(store, "actor.trunk", &dims, true, rng, device)?,
+            mean: Linear::new(store, "actor.mean", last, net.act_dim, rng, device)?,
+            log_std: Linear::new(store, "actor.log_std", last, net.act_dim, rng, device)?,
+        })
+    }
+
+    pub fn forward(&self, input: &PolicyInput, grad: Grad) -> Result<ActorOutput> {
+        let (features, z) = self.encoder.forward(input, grad)?;
+        let h = self.trunk.forward(&features, grad)?;
+        let mean = self.mean.forward(&h, grad)?;
+        let log_std = self.log_std.forward(&h, grad)?.clamp(LOG_STD_MIN, LOG_STD_MAX)?;
+        Ok(ActorOutput { mean, log_std, z })
+    }
+
+    /// Actions (and z) for a batch of host inputs, without recording gradients.
+    pub fn decide(
+        &self,
+        net: &NetConfig,
+        device: &Device,
+        obs: &[f32],
+        window: Option<&[f32]>,
+        mode: ActionMode,
+        noise: Option<&[f32]>,
+    ) -> Result<Vec<Decision>> {
+        if obs.is_empty() || obs.len() % net.obs_dim != 0 {
+            candle_core::bail!("observation batch of {} values is not a multiple of {}", obs.len(), net.obs_dim);
+        }
+        if let Some((i, v)) = obs.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+            candle_core::bail!("observation value {i} is {v}; observations must be finite");
+        }
+        let b = obs.len() / net.obs_dim;
+        if let Some(w) = window
+            && w.len() != b * net.context_len * net.entry_dim()
+        {
+            candle_core::bail!("window has {} values, expected {b} × {} × {}", w.len(), net.context_len, net.entry_dim());
+        }
+        let input = PolicyInput::from_slices(net, obs, window, device)?;
+        let out = self.forward(&input, Grad::Frozen)?;
+        let action = match (mode, noise) {
+            (ActionMode::Deterministic, _) => out.mean.tanh()?,
+            (ActionMode::Sampled, Some(noise)) if noise.len() == b * net.act_dim => {
+                squashed_sample(&out, &Tensor::from_slice(noise, (b, net.act_dim), device)?)?.0
+            }
+            (ActionMode::Sampled, _) => candle_core::bail!("sampled actions need {b} × {} noise values", net.act_dim),
+        };
+        let actions = action.to_vec2::<f32>()?;
+        let zs = match &out.z {
+            Some(z) => z.to_vec2::<f32>()?.into_iter().map(Some).collect(),
+            None => vec![None; b],
+        };
+        Ok(actions
+            .into_iter()
+            .zip(zs)
+            .map(|(a, z)| Decision { action: a.into_iter().map(f64::from).collect(), z })
+            .collect())
+    }
+}
+
+/// Squashed-Gaussian sample: a = tanh(μ + σ·ε) and its log-probability (B, 1), with the tanh
+/// correction. `noise` is ε ~ N(0, 1) of the same shape as μ, drawn by the caller (seeded).
+pub fn squashed_sample(out: &ActorOutput, noise: &Tensor) -> Result<(Tensor, Tensor)> {
+    let std = out.log_std.exp()?;
+    let u = (&out.mean + (std * noise)?)?;
+    let action = u.tanh()?;
+    // log N(u; μ, σ) = −ε²/2 − log σ − log(2π)/2, with (u − μ)/σ = ε exactly.
+    let half_log_2pi = 0.5 * (2.0 * std::f64::consts::PI).ln();
+    let gaussian = ((noise.sqr()? * -0.5)? - &out.log_std)?.affine(1.0, -half_log_2pi)?;
+    let correction = (action.sqr()?.affine(-1.0, 1.0 + TANH_EPS))?.log()?;
+    let log_prob = (gaussian - correction)?.sum_keepdim(D::Minus1)?;
+    Ok((action, log_prob))
+}
+
+/// Twin Q-networks with one encoder (SB3's ContinuousCritic).
+#[derive(Debug, Clone)]
+pub struct Critic {
+    /// `None` when the encoder is shared with (and owned by) the actor.
+    pub encoder: Option<Encoder>,
+    q: [Mlp; 2],
+}
+
+impl Critic {
+    pub fn new(
+        net: &NetConfig,
+        prefix: &str,
+        own_encoder: bool,
+        store: &mut ParamStore,
+        rng: &mut ChaCha8Rng,
+        device: &Device,
+    ) -> Result<Self> {
+        let encoder = if own_encoder {
+            Some(Encoder::new(net, store, &format!("{prefix}.encoder"), rng, device)?)
+        } else {
+            None
+        };
+        let mut dims = vec![net.features_dim() + net.act_dim];
+        dims.extend(&net.hidden);
+        dims.push(1);
+        let q0 = Mlp::new(store, &format!("{prefix}.q0"), &dims, false, rng, device)?;
+        let q1 = Mlp::new(store, &format!("{prefix}.q1"), &dims, false, rng, device)?;
+        Ok(Self { encoder, q: [q0, q1] })
+    }
+
+    /// Features for the Q-networks: own encoder, or the actor's (shared, read without gradient).
+    pub fn features(&self, input: &PolicyInput, shared: &Encoder, grad: Grad) -> Result<Tensor> {
+        match &self.encoder {
+            Some(enc) => Ok(enc.forward(input, grad)?.0),
+            None => Ok(shared.forward(input, Grad::Frozen)?.0.detach()),
+        }
+    }
+
+    /// Both Q values, each (B, 1), from precomputed features.
+    pub fn q_values(&self, features: &Tensor, action: &Tensor, grad: Grad) -> Result<[Tensor; 2]> {
+        let x = Tensor::cat(&[features, action], D::Minus1)?;
+        Ok([self.q[0].forward(&x, grad)?, self.q[1].forward(&x, grad)?])
+    }
+}
+
+/// Actor, critic, target critic and log α: everything a SAC checkpoint holds.
+#[derive(Debug, Clone)]
+pub struct SacModel {
+    pub net: NetConfig,
+    pub actor: Actor,
+    pub critic: Critic,
+    pub critic_target: Critic,
+    pub log_alpha: Var,
+    /// Parameters by owner, in a fixed order (the checkpoint's tensor order).
+    pub actor_params: ParamStore,
+    pub critic_params: ParamStore,
+    pub target_params: ParamStore,
+    pub alpha_params: ParamStore,
+}
+
+impl SacModel {
+    /// Fresh weights from `seed`; the target critic starts as a copy of the critic.
+    pub fn new(net: NetConfig, initial_alpha: f64, seed: u64, device: &Device) -> Result<Self> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut actor_params = ParamStore::new();
+        let actor = Actor::new(&net, &mut actor_params, &mut rng, device)?;
+        let own = !net.share_encoder || !net.encoder.uses_window();
+        let mut critic_params = ParamStore::new();
+        let critic = Critic::new(&net, "critic", own, &mut critic_params, &mut rng, device)?;
+        // The target always owns an encoder: with sharing it tracks the actor's (as in SB3).
+        let mut target_params = ParamStore::new();
+        let critic_target = Critic::new(&net, "critic_target", true, &mut target_params, &mut rng, device)?;
+        let mut alpha_params = ParamStore::new();
+        let log_alpha = alpha_params.push(
+            "log_alpha".into(),
+            Tensor::new(&[initial_alpha.ln() as f32], device)?,
+        )?;
+        let model = Self {
+            net,
+            actor,
+            critic,
+            critic_target,
+            log_alpha,
+            actor_params,
+            critic_params,
+            target_params,
+            alpha_params,
+        };
+        for (dst, src) in model.target_pairs() {
+            dst.set(src.as_tensor())?;
+        }
+        Ok(model)
+    }
+
+    /// (target, source) parameter pairs for the Polyak update, in the target's order. The target
+    /// was built like the critic (encoder, q0, q1), so with an own encoder the sources are the
+    /// critic's parameters in order; with a shared one the actor's encoder comes first.
+    pub fn target_pairs(&self) -> impl Iterator<Item = (&Var, &Var)> {
+        let shared_encoder = self
+            .actor_params
+            .iter()
+            .filter(|(name, _)| self.critic.encoder.is_none() && name.starts_with("actor.encoder."));
+        let sources = shared_encoder.chain(self.critic_params.iter()).map(|(_, v)| v);
+        self.target_params.vars().zip(sources)
+    }
+
+    /// Every parameter, named, in checkpoint order.
+    pub fn all_params(&self) -> impl Iterator<Item = (&str, &Var)> {
+        self.actor_params
+            .iter()
+            .chain(self.critic_params.iter())
+            .chain(self.target_params.iter())
+            .chain(self.alpha_params.iter())
+    }
+
+    pub fn alpha(&self) -> Result<f64> {
+        Ok(self.log_alpha.as_tensor().exp()?.to_vec1::<f32>()?[0] as f64)
+    }
+}
+
+/// How the policy picks an action.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ActionMode {
+    /// tanh(mean): evaluation.
+    Deterministic,
+    /// A squashed-Gaussian sample: exploration.
+    Sampled,
+}
+
+/// One decision for one env.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decision {
+    pub action: Vec<f64>,
+    /// The context latent, for encoder policies.
+    pub z: Option<Vec<f32>>,
+}
+
+/// A trained actor, ready to act: what eval, record and the live viewer load.
+#[derive(Debug, Clone)]
+pub struct Policy {
+    pub meta: CheckpointMeta,
+    pub actor: Actor,
+    device: Device,
+}
+
+impl Policy {
+    pub fn new(meta: CheckpointMeta, actor: Actor, device: Device) -> Self {
+        Self { meta, actor, device }
+    }
+
+    pub fn net(&self) -> &NetConfig {
+        &self.meta.net
+    }
+
+    /// Decides for a batch: `obs` is B × obs_dim, `window` B × k × entry (encoder policies).
+    /// `noise` (B × act_dim standard normals) is required for [`ActionMode::Sampled`].
+    pub fn act_batch(
+        &self,
+        obs: &[f32],
+        window: Option<&[f32]>,
+        mode: ActionMode,
+        noise: Option<&[f32]>,
+    ) -> Result<Vec<Decision>> {
+        self.actor.decide(&self.meta.net, &self.device, obs, window, mode, noise)
+    }
+}

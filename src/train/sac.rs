@@ -1,0 +1,154 @@
+//! One SAC gradient step, in Stable-Baselines3's order:
+//! entropy coefficient → critic (against the target) → actor (against the updated critic) →
+//! Polyak update of the target.
+
+use candle_core::{Device, Result, Tensor};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::Serialize;
+
+use super::adam::Adam;
+use super::replay::Batch;
+use crate::policy::layers::Grad;
+use crate::policy::{PolicyInput, SacConfig, SacModel, squashed_sample};
+
+/// Losses and values of one update, CleanRL's names.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct UpdateStats {
+    #[serde(rename = "losses/qf1")]
+    pub qf1_loss: f64,
+    #[serde(rename = "losses/qf2")]
+    pub qf2_loss: f64,
+    #[serde(rename = "losses/qf1_values")]
+    pub qf1_values: f64,
+    #[serde(rename = "losses/qf2_values")]
+    pub qf2_values: f64,
+    #[serde(rename = "losses/actor_loss")]
+    pub actor_loss: f64,
+    #[serde(rename = "losses/alpha")]
+    pub alpha: f64,
+    #[serde(rename = "losses/alpha_loss")]
+    pub alpha_loss: f64,
+}
+
+/// The model plus its three optimisers.
+pub struct SacLearner {
+    pub model: SacModel,
+    pub config: SacConfig,
+    pub target_entropy: f64,
+    pub actor_opt: Adam,
+    pub critic_opt: Adam,
+    pub alpha_opt: Adam,
+    device: Device,
+}
+
+impl SacLearner {
+    pub fn new(model: SacModel, config: SacConfig, device: Device) -> Self {
+        let lr = config.learning_rate;
+        let target_entropy = config.target_entropy.unwrap_or(-(model.net.act_dim as f64));
+        Self {
+            actor_opt: Adam::new(model.actor_params.vars(), lr),
+            critic_opt: Adam::new(model.critic_params.vars(), lr),
+            alpha_opt: Adam::new(model.alpha_params.vars(), lr),
+            model,
+            config,
+            target_entropy,
+            device,
+        }
+    }
+
+    fn inputs(&self, batch: &Batch) -> Result<(PolicyInput, PolicyInput)> {
+        let net = &self.model.net;
+        let windows = net.encoder.uses_window();
+        let now = PolicyInput::from_slices(net, &batch.obs, windows.then_some(&batch.window[..]), &self.device)?;
+        let next =
+            PolicyInput::from_slices(net, &batch.next_obs, windows.then_some(&batch.next_window[..]), &self.device)?;
+        Ok((now, next))
+    }
+
+    fn noise(&self, b: usize, rng: &mut ChaCha8Rng) -> Result<Tensor> {
+        let act = self.model.net.act_dim;
+        let values: Vec<f32> = (0..b * act).map(|_| rng.sample::<f32, _>(StandardNormal)).collect();
+        Tensor::from_vec(values, (b, act), &self.device)
+    }
+
+    /// One gradient step on `batch`; `rng` draws the reparameterisation noise.
+    pub fn update(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
+        let b = batch.size;
+        let (input, next_input) = self.inputs(batch)?;
+        let model = &self.model;
+
+        // --- entropy coefficient -------------------------------------------------------------
+        let actor_out = model.actor.forward(&input, Grad::Track)?;
+        let (action_pi, log_prob_pi) = squashed_sample(&actor_out, &self.noise(b, rng)?)?;
+        let alpha = model.alpha()?;
+        let alpha_loss = (model.log_alpha.as_tensor().broadcast_mul(&(log_prob_pi.detach() + self.target_entropy)?)?
+            .mean_all()?
+            * -1.0)?;
+        let alpha_grads = alpha_loss.backward()?;
+        self.alpha_opt.step(&alpha_grads)?;
+
+        // --- critic ----------------------------------------------------------------------------
+        let target_q = {
+            let next_out = model.actor.forward(&next_input, Grad::Frozen)?;
+            let (next_action, next_log_prob) = squashed_sample(&next_out, &self.noise(b, rng)?)?;
+            let next_features = model.critic_target.features(&next_input, &model.actor.encoder, Grad::Frozen)?;
+            let [q1, q2] = model.critic_target.q_values(&next_features, &next_action, Grad::Frozen)?;
+            let next_q = (q1.minimum(&q2)? - (next_log_prob * alpha)?)?;
+            let rewards = Tensor::from_slice(&batch.rewards, (b, 1), &self.device)?;
+            let not_done = Tensor::from_slice(&batch.terminated, (b, 1), &self.device)?.affine(-1.0, 1.0)?;
+            // Bootstrap cut on termination only: a truncated episode still has a future.
+            (rewards + (not_done * next_q)?.affine(self.config.gamma, 0.0)?)?.detach()
+        };
+        let actions = Tensor::from_slice(&batch.actions, (b, model.net.act_dim), &self.device)?;
+        let features = model.critic.features(&input, &model.actor.encoder, Grad::Track)?;
+        let [q1, q2] = model.critic.q_values(&features, &actions, Grad::Track)?;
+        let qf1_loss = (&q1 - &target_q)?.sqr()?.mean_all()?;
+        let qf2_loss = (&q2 - &target_q)?.sqr()?.mean_all()?;
+        let critic_loss = ((&qf1_loss + &qf2_loss)? * 0.5)?;
+        let critic_grads = critic_loss.backward()?;
+        self.critic_opt.step(&critic_grads)?;
+
+        // --- actor -------------------------------------------------------------------------------
+        // The critic (just updated) is frozen: gradients reach the action, not its weights.
+        let model = &self.model;
+        let features_pi = model.critic.features(&input, &model.actor.encoder, Grad::Frozen)?.detach();
+        let [q1_pi, q2_pi] = model.critic.q_values(&features_pi, &action_pi, Grad::Frozen)?;
+        let min_q_pi = q1_pi.minimum(&q2_pi)?;
+        let actor_loss = ((log_prob_pi * alpha)? - min_q_pi)?.mean_all()?;
+        let actor_grads = actor_loss.backward()?;
+        self.actor_opt.step(&actor_grads)?;
+
+        // --- target critic -------------------------------------------------------------------
+        polyak_update(self.model.target_pairs(), self.config.tau)?;
+
+        let scalar = |t: &Tensor| -> Result<f64> { Ok(t.to_scalar::<f32>()? as f64) };
+        Ok(UpdateStats {
+            qf1_loss: scalar(&qf1_loss)?,
+            qf2_loss: scalar(&qf2_loss)?,
+            qf1_values: scalar(&q1.mean_all()?)?,
+            qf2_values: scalar(&q2.mean_all()?)?,
+            actor_loss: scalar(&actor_loss)?,
+            alpha,
+            alpha_loss: scalar(&alpha_loss)?,
+        })
+    }
+}
+
+/// target ← τ·source + (1 − τ)·target, for each pair.
+pub fn polyak_update<'a>(
+    pairs: impl Iterator<Item = (&'a candle_core::Var, &'a candle_core::Var)>,
+    tau: f64,
+) -> Result<()> {
+    let tau = tau as f32;
+    for (target, source) in pairs {
+        let src = source.flatten_all()?.to_vec1::<f32>()?;
+        let mut dst = target.flatten_all()?.to_vec1::<f32>()?;
+        for (d, s) in dst.iter_mut().zip(&src) {
+            *d = tau * s + (1.0 - tau) * *d;
+        }
+        target.set(&Tensor::from_vec(dst, target.shape(), target.device())?)?;
+    }
+    Ok(())
+}
