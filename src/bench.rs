@@ -235,14 +235,20 @@ pub fn bench_train(
         let device = candle_core::Device::Cpu;
         let model = SacModel::new(net.clone(), 1.0, 0, &device)?;
         let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
-        let window_len = if encoder.uses_window() { net.context_len } else { 0 };
+        let window_len = if encoder.uses_window() {
+            net.context_len
+        } else {
+            0
+        };
         let mut replay = ReplayBuffer::new(5_000, net.obs_dim, net.act_dim, window_len);
         let mut task = AntTask(AntEnv::new(GaitConfig::default(), 0)?);
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let mut obs = task.reset_with_seed(0);
         let mut t = 0;
         for _ in 0..5_000 {
-            let action: Vec<f64> = (0..net.act_dim).map(|_| rng.random_range(-1.0..=1.0)).collect();
+            let action: Vec<f64> = (0..net.act_dim)
+                .map(|_| rng.random_range(-1.0..=1.0))
+                .collect();
             let step = task.step(&action)?;
             replay.push(Transition {
                 obs: &obs,
@@ -253,7 +259,11 @@ pub fn bench_train(
                 truncated: step.truncated,
                 t_in_episode: t,
             });
-            (obs, t) = if step.terminated || step.truncated { (task.reset(), 0) } else { (step.obs, t + 1) };
+            (obs, t) = if step.terminated || step.truncated {
+                (task.reset(), 0)
+            } else {
+                (step.obs, t + 1)
+            };
         }
         let mut batch = Batch::default();
         let n_updates = (steps / 2).max(20);

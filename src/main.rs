@@ -7,11 +7,11 @@ use std::path::PathBuf;
 
 use gaitscope::bench::bench_env;
 use gaitscope::policy::EncoderKind;
+use gaitscope::rollout::{self, BuiltinPolicy};
 use gaitscope::train;
+use gaitscope::{AntEnv, Condition, ConditionChoice, GaitConfig};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use gaitscope::rollout::{self, BuiltinPolicy};
-use gaitscope::{AntEnv, Condition, ConditionChoice, GaitConfig};
 
 #[derive(Parser)]
 #[command(
@@ -92,16 +92,22 @@ struct RolloutArgs {
 
 #[derive(Args)]
 struct TrainArgs {
-    /// Feature extractor: none (baseline), lstm (the paper's), mlp-window (ablation).
-    #[arg(long, value_enum, default_value_t = EncoderKind::Lstm)]
-    encoder: EncoderKind,
+    /// Feature extractor: none (baseline), lstm (the paper's, default), mlp-window (ablation).
+    /// With --resume it must match the run's, and may be left out.
+    #[arg(long, value_enum)]
+    encoder: Option<EncoderKind>,
     /// Total env steps (a resumed run stops at the same total).
     #[arg(long, default_value_t = 500_000)]
     steps: u64,
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Run folder: checkpoint, optimiser state, replay buffer, metrics.jsonl.
-    #[arg(long, value_name = "DIR", required_unless_present = "resume", conflicts_with = "resume")]
+    #[arg(
+        long,
+        value_name = "DIR",
+        required_unless_present = "resume",
+        conflicts_with = "resume"
+    )]
     out: Option<PathBuf>,
     /// Continue the run in DIR (weights, optimiser, RNGs, step counter, replay buffer).
     #[arg(long, value_name = "DIR")]
@@ -184,7 +190,8 @@ fn run(cli: Cli) -> Result<()> {
             if steps == 0 {
                 bail!("--steps must be at least 1");
             }
-            let scratch = std::env::temp_dir().join(format!("gaitscope-bench-{}", std::process::id()));
+            let scratch =
+                std::env::temp_dir().join(format!("gaitscope-bench-{}", std::process::id()));
             let rows = gaitscope::bench::bench_train(&encoders, steps, &scratch)?;
             let _ = std::fs::remove_dir_all(&scratch);
             println!("encoder     train steps/s  updates/s (no env)  act/s (batch 1)");
@@ -253,7 +260,22 @@ fn train_command(args: TrainArgs) -> Result<()> {
     let Some(out) = args.resume.clone().or(args.out.clone()) else {
         bail!("train needs --out DIR (or --resume DIR)");
     };
-    let mut opts = train::ant_options(args.encoder, args.steps, args.seed, out.clone());
+    let encoder = match (&args.resume, args.encoder) {
+        (Some(dir), expected) => {
+            let found = gaitscope::policy::checkpoint::read_meta(dir)?.net.encoder;
+            if let Some(expected) = expected
+                && expected != found
+            {
+                bail!(
+                    "{} is a '{found}' run; --encoder {expected} does not match",
+                    dir.display()
+                );
+            }
+            found
+        }
+        (None, encoder) => encoder.unwrap_or(EncoderKind::Lstm),
+    };
+    let mut opts = train::ant_options(encoder, args.steps, args.seed, out.clone());
     opts.env = args.env.load()?;
     opts.net.share_encoder = args.share_encoder;
     opts.checkpoint_every = args.checkpoint_every;
@@ -270,9 +292,14 @@ fn train_command(args: TrainArgs) -> Result<()> {
     }
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
-    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed)).context("installing the Ctrl-C handler")?;
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
+        .context("installing the Ctrl-C handler")?;
     let summary = train::train_ant(opts, resume, stop)?;
-    let how = if summary.interrupted { "interrupted; checkpoint saved" } else { "done" };
+    let how = if summary.interrupted {
+        "interrupted; checkpoint saved"
+    } else {
+        "done"
+    };
     eprintln!(
         "{how}: {} steps, {} episodes, {:.0} s, {:.1} steps/s → {}",
         summary.steps_done,

@@ -31,7 +31,14 @@ impl ContextWindow {
     pub fn with_dims(len: usize, obs_dim: usize, act_dim: usize) -> Self {
         assert!(len > 0, "context window length must be positive");
         let entry = obs_dim + act_dim;
-        Self { len, obs_dim, act_dim, storage: vec![0.0; 2 * len * entry], head: 0, filled: 0 }
+        Self {
+            len,
+            obs_dim,
+            act_dim,
+            storage: vec![0.0; 2 * len * entry],
+            head: 0,
+            filled: 0,
+        }
     }
 
     /// Values per entry: observation then action.
@@ -73,7 +80,11 @@ impl ContextWindow {
 
     /// Appends the observation the policy saw and the action it commanded.
     pub fn push(&mut self, obs: &[f64], action: &[f64]) {
-        assert_eq!((obs.len(), action.len()), (self.obs_dim, self.act_dim), "window entry dims");
+        assert_eq!(
+            (obs.len(), action.len()),
+            (self.obs_dim, self.act_dim),
+            "window entry dims"
+        );
         let slot = self.head;
         let entry_dim = self.entry_dim();
         for copy in [slot, slot + self.len] {

@@ -40,27 +40,54 @@ pub enum CheckpointError {
     #[error("checkpoint directory {0} does not exist")]
     NoSuchDir(PathBuf),
     #[error("cannot read {path}: {source}")]
-    Read { path: PathBuf, source: std::io::Error },
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("cannot write {path}: {source}")]
-    Write { path: PathBuf, source: std::io::Error },
+    Write {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path} is not a valid checkpoint.json: {reason}")]
     BadMeta { path: PathBuf, reason: String },
     #[error("checkpoint {dir} holds a '{found}' model, expected '{expected}'")]
-    WrongKind { dir: PathBuf, expected: EncoderKind, found: EncoderKind },
+    WrongKind {
+        dir: PathBuf,
+        expected: EncoderKind,
+        found: EncoderKind,
+    },
     #[error(
         "{path} does not match its checkpoint.json (CRC-32 {found:08x}, expected {expected:08x}): truncated, corrupt, or from another save"
     )]
-    CrcMismatch { path: PathBuf, expected: u32, found: u32 },
+    CrcMismatch {
+        path: PathBuf,
+        expected: u32,
+        found: u32,
+    },
     #[error("{path} is not a readable safetensors file: {reason}")]
     BadWeights { path: PathBuf, reason: String },
     #[error("checkpoint {dir}: tensor '{name}' is missing from model.safetensors")]
     MissingTensor { dir: PathBuf, name: String },
     #[error("checkpoint {dir}: unexpected tensor '{name}' (not part of a '{kind}' model)")]
-    UnexpectedTensor { dir: PathBuf, name: String, kind: EncoderKind },
+    UnexpectedTensor {
+        dir: PathBuf,
+        name: String,
+        kind: EncoderKind,
+    },
     #[error("checkpoint {dir}: tensor '{name}' has shape {found:?}, the model needs {expected:?}")]
-    ShapeMismatch { dir: PathBuf, name: String, expected: Vec<usize>, found: Vec<usize> },
+    ShapeMismatch {
+        dir: PathBuf,
+        name: String,
+        expected: Vec<usize>,
+        found: Vec<usize>,
+    },
     #[error("checkpoint {dir}: tensor '{name}' is {dtype}, expected f32")]
-    WrongDtype { dir: PathBuf, name: String, dtype: String },
+    WrongDtype {
+        dir: PathBuf,
+        name: String,
+        dtype: String,
+    },
     #[error("checkpoint {dir}: tensor '{name}' contains NaN or infinite values")]
     NonFinite { dir: PathBuf, name: String },
     #[error("tensor error: {0}")]
@@ -93,7 +120,10 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), CheckpointError> {
     };
     write().map_err(|source| {
         let _ = std::fs::remove_file(&tmp);
-        CheckpointError::Write { path: path.to_owned(), source }
+        CheckpointError::Write {
+            path: path.to_owned(),
+            source,
+        }
     })
 }
 
@@ -117,9 +147,14 @@ pub fn safetensors_bytes<'a>(
                 .map(|v| (name.clone(), v))
         })
         .collect::<Result<_, _>>()
-        .map_err(|e| CheckpointError::BadWeights { path: PathBuf::from("<memory>"), reason: e.to_string() })?;
-    safetensors::serialize(views, None)
-        .map_err(|e| CheckpointError::BadWeights { path: PathBuf::from("<memory>"), reason: e.to_string() })
+        .map_err(|e| CheckpointError::BadWeights {
+            path: PathBuf::from("<memory>"),
+            reason: e.to_string(),
+        })?;
+    safetensors::serialize(views, None).map_err(|e| CheckpointError::BadWeights {
+        path: PathBuf::from("<memory>"),
+        reason: e.to_string(),
+    })
 }
 
 /// Reads safetensors bytes into named f32 tensors, checking each against `expected` (name →
@@ -132,19 +167,29 @@ pub fn load_expected_tensors(
     kind: EncoderKind,
     device: &Device,
 ) -> Result<BTreeMap<String, Tensor>, CheckpointError> {
-    let file = safetensors::SafeTensors::deserialize(bytes)
-        .map_err(|e| CheckpointError::BadWeights { path: path.to_owned(), reason: e.to_string() })?;
+    let file =
+        safetensors::SafeTensors::deserialize(bytes).map_err(|e| CheckpointError::BadWeights {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
     let dir = dir.to_owned();
     for name in file.names() {
         if !expected.contains_key(&name.to_string()) {
-            return Err(CheckpointError::UnexpectedTensor { dir, name: name.to_string(), kind });
+            return Err(CheckpointError::UnexpectedTensor {
+                dir,
+                name: name.to_string(),
+                kind,
+            });
         }
     }
     let mut out = BTreeMap::new();
     for (name, shape) in expected {
         let view = file
             .tensor(name)
-            .map_err(|_| CheckpointError::MissingTensor { dir: dir.clone(), name: name.clone() })?;
+            .map_err(|_| CheckpointError::MissingTensor {
+                dir: dir.clone(),
+                name: name.clone(),
+            })?;
         if view.dtype() != safetensors::Dtype::F32 {
             return Err(CheckpointError::WrongDtype {
                 dir,
@@ -166,9 +211,15 @@ pub fn load_expected_tensors(
             .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
             .collect();
         if values.iter().any(|v| !v.is_finite()) {
-            return Err(CheckpointError::NonFinite { dir, name: name.clone() });
+            return Err(CheckpointError::NonFinite {
+                dir,
+                name: name.clone(),
+            });
         }
-        out.insert(name.clone(), Tensor::from_vec(values, shape.as_slice(), device)?);
+        out.insert(
+            name.clone(),
+            Tensor::from_vec(values, shape.as_slice(), device)?,
+        );
     }
     Ok(out)
 }
@@ -176,13 +227,21 @@ pub fn load_expected_tensors(
 impl SacModel {
     /// Name → shape of every tensor this model saves.
     pub fn tensor_shapes(&self) -> BTreeMap<String, Vec<usize>> {
-        self.all_params().map(|(n, v)| (n.to_string(), v.dims().to_vec())).collect()
+        self.all_params()
+            .map(|(n, v)| (n.to_string(), v.dims().to_vec()))
+            .collect()
     }
 
     /// Writes `model.safetensors`, then `checkpoint.json`, each atomically.
-    pub fn save(&self, dir: &Path, record: &TrainingRecord) -> Result<CheckpointMeta, CheckpointError> {
-        std::fs::create_dir_all(dir)
-            .map_err(|source| CheckpointError::Write { path: dir.to_owned(), source })?;
+    pub fn save(
+        &self,
+        dir: &Path,
+        record: &TrainingRecord,
+    ) -> Result<CheckpointMeta, CheckpointError> {
+        std::fs::create_dir_all(dir).map_err(|source| CheckpointError::Write {
+            path: dir.to_owned(),
+            source,
+        })?;
         let bytes = safetensors_bytes(self.all_params().map(|(n, v)| (n, v.as_tensor())))?;
         let meta = CheckpointMeta {
             format_version: FORMAT_VERSION,
@@ -198,8 +257,10 @@ impl SacModel {
             model_crc32: crc32fast::hash(&bytes),
         };
         write_atomic(&dir.join(MODEL_FILE), &bytes)?;
-        let json = serde_json::to_vec_pretty(&meta)
-            .map_err(|e| CheckpointError::BadMeta { path: dir.join(META_FILE), reason: e.to_string() })?;
+        let json = serde_json::to_vec_pretty(&meta).map_err(|e| CheckpointError::BadMeta {
+            path: dir.join(META_FILE),
+            reason: e.to_string(),
+        })?;
         write_atomic(&dir.join(META_FILE), &json)?;
         Ok(meta)
     }
@@ -214,20 +275,34 @@ impl SacModel {
         if let Some(expected) = expected
             && expected != meta.net.encoder
         {
-            return Err(CheckpointError::WrongKind { dir: dir.to_owned(), expected, found: meta.net.encoder });
+            return Err(CheckpointError::WrongKind {
+                dir: dir.to_owned(),
+                expected,
+                found: meta.net.encoder,
+            });
         }
         let model = Self::new(meta.net.clone(), 1.0, 0, device)?;
         let shapes = model.tensor_shapes();
         if shapes != meta.tensors {
             let meta_path = dir.join(META_FILE);
             let reason = describe_shape_difference(&shapes, &meta.tensors);
-            return Err(CheckpointError::BadMeta { path: meta_path, reason });
+            return Err(CheckpointError::BadMeta {
+                path: meta_path,
+                reason,
+            });
         }
         let path = dir.join(MODEL_FILE);
-        let bytes = std::fs::read(&path).map_err(|source| CheckpointError::Read { path: path.clone(), source })?;
+        let bytes = std::fs::read(&path).map_err(|source| CheckpointError::Read {
+            path: path.clone(),
+            source,
+        })?;
         let found = crc32fast::hash(&bytes);
         if found != meta.model_crc32 {
-            return Err(CheckpointError::CrcMismatch { path, expected: meta.model_crc32, found });
+            return Err(CheckpointError::CrcMismatch {
+                path,
+                expected: meta.model_crc32,
+                found,
+            });
         }
         let tensors = load_expected_tensors(dir, &path, &bytes, &shapes, meta.net.encoder, device)?;
         for (name, var) in model.all_params() {
@@ -237,15 +312,24 @@ impl SacModel {
     }
 }
 
-fn describe_shape_difference(model: &BTreeMap<String, Vec<usize>>, listed: &BTreeMap<String, Vec<usize>>) -> String {
+fn describe_shape_difference(
+    model: &BTreeMap<String, Vec<usize>>,
+    listed: &BTreeMap<String, Vec<usize>>,
+) -> String {
     if let Some(name) = model.keys().find(|n| !listed.contains_key(*n)) {
         return format!("its tensor list lacks '{name}', which its net config implies");
     }
     if let Some(name) = listed.keys().find(|n| !model.contains_key(*n)) {
         return format!("it lists tensor '{name}', which its net config does not have");
     }
-    let (name, shape) = model.iter().find(|(n, s)| listed.get(*n) != Some(s)).expect("maps differ");
-    format!("it lists '{name}' as {:?}, its net config implies {shape:?}", listed[name])
+    let (name, shape) = model
+        .iter()
+        .find(|(n, s)| listed.get(*n) != Some(s))
+        .expect("maps differ");
+    format!(
+        "it lists '{name}' as {:?}, its net config implies {shape:?}",
+        listed[name]
+    )
 }
 
 /// Reads and parses `checkpoint.json`.
@@ -254,13 +338,22 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, CheckpointError> {
         return Err(CheckpointError::NoSuchDir(dir.to_owned()));
     }
     let path = dir.join(META_FILE);
-    let text = std::fs::read_to_string(&path).map_err(|source| CheckpointError::Read { path: path.clone(), source })?;
+    let text = std::fs::read_to_string(&path).map_err(|source| CheckpointError::Read {
+        path: path.clone(),
+        source,
+    })?;
     let meta: CheckpointMeta =
-        serde_json::from_str(&text).map_err(|e| CheckpointError::BadMeta { path: path.clone(), reason: e.to_string() })?;
+        serde_json::from_str(&text).map_err(|e| CheckpointError::BadMeta {
+            path: path.clone(),
+            reason: e.to_string(),
+        })?;
     if meta.format_version != FORMAT_VERSION {
         return Err(CheckpointError::BadMeta {
             path,
-            reason: format!("format version {} (this gaitscope reads {FORMAT_VERSION})", meta.format_version),
+            reason: format!(
+                "format version {} (this gaitscope reads {FORMAT_VERSION})",
+                meta.format_version
+            ),
         });
     }
     Ok(meta)

@@ -105,13 +105,20 @@ impl Linear {
         device: &Device,
     ) -> Result<Self> {
         let bound = 1.0 / (in_dim as f64).sqrt();
-        let w = store.uniform(format!("{name}.weight"), &[in_dim, out_dim], bound, rng, device)?;
+        let w = store.uniform(
+            format!("{name}.weight"),
+            &[in_dim, out_dim],
+            bound,
+            rng,
+            device,
+        )?;
         let b = store.uniform(format!("{name}.bias"), &[1, out_dim], bound, rng, device)?;
         Ok(Self { w, b })
     }
 
     pub fn forward(&self, x: &Tensor, grad: Grad) -> Result<Tensor> {
-        x.matmul(&grad.param(&self.w))?.broadcast_add(&grad.param(&self.b))
+        x.matmul(&grad.param(&self.w))?
+            .broadcast_add(&grad.param(&self.b))
     }
 
     pub fn out_dim(&self) -> usize {
@@ -188,46 +195,22 @@ impl Lstm {
     }
 
     /// Runs over a batch of sequences `(B, T, input)` from zero state; returns the final hidden
-    /// state `(B, hidden)`. The input projection of all T steps is one matmul.
+    /// state `(B, hidden)`. The input projection of all T steps is one matmul; the recurrence is
+    /// one fused op ([`super::lstm_kernel`]).
     pub fn forward(&self, xs: &Tensor, grad: Grad) -> Result<Tensor> {
         let (b, t, input) = xs.dims3()?;
         let hsz = self.hidden;
-        let bias = grad.param(&self.b_ih).broadcast_add(&grad.param(&self.b_hh))?;
+        let bias = grad
+            .param(&self.b_ih)
+            .broadcast_add(&grad.param(&self.b_hh))?;
         // (B·T, in)·W_ih → (B, T, 4H) → time-major (T, B, 4H) so each step is a contiguous slab.
         let projected = xs
             .reshape((b * t, input))?
             .matmul(&grad.param(&self.w_ih))?
             .broadcast_add(&bias)?
             .reshape((b, t, 4 * hsz))?
-            .transpose(0, 1)?
-            .contiguous()?;
-        let w_hh = grad.param(&self.w_hh);
-        let mut h: Option<Tensor> = None;
-        let mut c: Option<Tensor> = None;
-        for step in 0..t {
-            let x_t = projected.get(step)?;
-            // h and c start at zero, so the first step skips the recurrent matmul and f·c.
-            let gates = match &h {
-                Some(h) => (x_t + h.matmul(&w_hh)?)?,
-                None => x_t,
-            };
-            let sig = candle_nn::ops::sigmoid(&gates)?;
-            let i = sig.narrow(1, 0, hsz)?;
-            let f = sig.narrow(1, hsz, hsz)?;
-            let g = gates.narrow(1, 2 * hsz, hsz)?.tanh()?;
-            let o = sig.narrow(1, 3 * hsz, hsz)?;
-            let ig = (i * g)?;
-            let c_new = match &c {
-                Some(c) => ((f * c)? + ig)?,
-                None => ig,
-            };
-            h = Some((o * c_new.tanh()?)?);
-            c = Some(c_new);
-        }
-        match h {
-            Some(h) => Ok(h),
-            None => Tensor::zeros((b, hsz), DType::F32, xs.device()),
-        }
+            .transpose(0, 1)?;
+        super::lstm_kernel::lstm_recurrence(&projected, &grad.param(&self.w_hh))
     }
 }
 
@@ -250,7 +233,11 @@ mod tests {
             assert!(vals.iter().all(|x| x.abs() <= 0.5), "U(−1/√4, 1/√4)");
         }
         let x = Tensor::new(&[[1f32, 0., 0., 0.]], &dev).unwrap();
-        let y = lin.forward(&x, Grad::Track).unwrap().to_vec2::<f32>().unwrap();
+        let y = lin
+            .forward(&x, Grad::Track)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
         let w = lin.w.to_vec2::<f32>().unwrap();
         let b = lin.b.to_vec2::<f32>().unwrap();
         for j in 0..3 {
@@ -265,7 +252,11 @@ mod tests {
         let mut store = ParamStore::new();
         let lin = Linear::new(&mut store, "l", 2, 1, &mut rng, &dev).unwrap();
         let x = Var::new(&[[1f32, 2.]], &dev).unwrap();
-        let y = lin.forward(x.as_tensor(), Grad::Frozen).unwrap().sum_all().unwrap();
+        let y = lin
+            .forward(x.as_tensor(), Grad::Frozen)
+            .unwrap()
+            .sum_all()
+            .unwrap();
         let grads = y.backward().unwrap();
         assert!(grads.get(&lin.w).is_none());
         let gx = grads.get(&x).unwrap().to_vec2::<f32>().unwrap();

@@ -12,6 +12,7 @@
 
 pub mod checkpoint;
 pub mod layers;
+pub mod lstm_kernel;
 
 use candle_core::{D, Device, Result, Tensor, Var};
 use rand::SeedableRng;
@@ -86,7 +87,7 @@ impl NetConfig {
             context_len: 16,
             z_dim: 32,
             hidden: vec![256, 256],
-            window_mlp_hidden: vec![256],
+            window_mlp_hidden: vec![64],
             share_encoder: false,
         }
     }
@@ -154,7 +155,11 @@ impl PolicyInput {
         let b = obs.len() / net.obs_dim;
         let obs = Tensor::from_slice(obs, (b, net.obs_dim), device)?;
         let window = match (net.encoder.uses_window(), window) {
-            (true, Some(w)) => Some(Tensor::from_slice(w, (b, net.context_len, net.entry_dim()), device)?),
+            (true, Some(w)) => Some(Tensor::from_slice(
+                w,
+                (b, net.context_len, net.entry_dim()),
+                device,
+            )?),
             (true, None) => candle_core::bail!("encoder {} needs a context window", net.encoder),
             (false, _) => None,
         };
@@ -196,7 +201,14 @@ impl Encoder {
                 let mut dims = vec![net.context_len * net.entry_dim()];
                 dims.extend(&net.window_mlp_hidden);
                 dims.push(net.z_dim);
-                Encoder::MlpWindow(Mlp::new(store, &format!("{name}.mlp"), &dims, false, rng, device)?)
+                Encoder::MlpWindow(Mlp::new(
+                    store,
+                    &format!("{name}.mlp"),
+                    &dims,
+                    false,
+                    rng,
+                    device,
+                )?)
             }
         })
     }
@@ -235,7 +247,12 @@ pub struct Actor {
 }
 
 impl Actor {
-    pub fn new(net: &NetConfig, store: &mut ParamStore, rng: &mut ChaCha8Rng, device: &Device) -> Result<Self> {
+    pub fn new(
+        net: &NetConfig,
+        store: &mut ParamStore,
+        rng: &mut ChaCha8Rng,
+        device: &Device,
+    ) -> Result<Self> {
         let encoder = Encoder::new(net, store, "actor.encoder", rng, device)?;
         let mut dims = vec![net.features_dim()];
         dims.extend(&net.hidden);
@@ -252,7 +269,10 @@ impl Actor {
         let (features, z) = self.encoder.forward(input, grad)?;
         let h = self.trunk.forward(&features, grad)?;
         let mean = self.mean.forward(&h, grad)?;
-        let log_std = self.log_std.forward(&h, grad)?.clamp(LOG_STD_MIN, LOG_STD_MAX)?;
+        let log_std = self
+            .log_std
+            .forward(&h, grad)?
+            .clamp(LOG_STD_MIN, LOG_STD_MAX)?;
         Ok(ActorOutput { mean, log_std, z })
     }
 
@@ -267,7 +287,11 @@ impl Actor {
         noise: Option<&[f32]>,
     ) -> Result<Vec<Decision>> {
         if obs.is_empty() || obs.len() % net.obs_dim != 0 {
-            candle_core::bail!("observation batch of {} values is not a multiple of {}", obs.len(), net.obs_dim);
+            candle_core::bail!(
+                "observation batch of {} values is not a multiple of {}",
+                obs.len(),
+                net.obs_dim
+            );
         }
         if let Some((i, v)) = obs.iter().enumerate().find(|(_, v)| !v.is_finite()) {
             candle_core::bail!("observation value {i} is {v}; observations must be finite");
@@ -276,7 +300,12 @@ impl Actor {
         if let Some(w) = window
             && w.len() != b * net.context_len * net.entry_dim()
         {
-            candle_core::bail!("window has {} values, expected {b} × {} × {}", w.len(), net.context_len, net.entry_dim());
+            candle_core::bail!(
+                "window has {} values, expected {b} × {} × {}",
+                w.len(),
+                net.context_len,
+                net.entry_dim()
+            );
         }
         let input = PolicyInput::from_slices(net, obs, window, device)?;
         let out = self.forward(&input, Grad::Frozen)?;
@@ -285,7 +314,9 @@ impl Actor {
             (ActionMode::Sampled, Some(noise)) if noise.len() == b * net.act_dim => {
                 squashed_sample(&out, &Tensor::from_slice(noise, (b, net.act_dim), device)?)?.0
             }
-            (ActionMode::Sampled, _) => candle_core::bail!("sampled actions need {b} × {} noise values", net.act_dim),
+            (ActionMode::Sampled, _) => {
+                candle_core::bail!("sampled actions need {b} × {} noise values", net.act_dim)
+            }
         };
         let actions = action.to_vec2::<f32>()?;
         let zs = match &out.z {
@@ -295,7 +326,10 @@ impl Actor {
         Ok(actions
             .into_iter()
             .zip(zs)
-            .map(|(a, z)| Decision { action: a.into_iter().map(f64::from).collect(), z })
+            .map(|(a, z)| Decision {
+                action: a.into_iter().map(f64::from).collect(),
+                z,
+            })
             .collect())
     }
 }
@@ -332,7 +366,13 @@ impl Critic {
         device: &Device,
     ) -> Result<Self> {
         let encoder = if own_encoder {
-            Some(Encoder::new(net, store, &format!("{prefix}.encoder"), rng, device)?)
+            Some(Encoder::new(
+                net,
+                store,
+                &format!("{prefix}.encoder"),
+                rng,
+                device,
+            )?)
         } else {
             None
         };
@@ -341,7 +381,10 @@ impl Critic {
         dims.push(1);
         let q0 = Mlp::new(store, &format!("{prefix}.q0"), &dims, false, rng, device)?;
         let q1 = Mlp::new(store, &format!("{prefix}.q1"), &dims, false, rng, device)?;
-        Ok(Self { encoder, q: [q0, q1] })
+        Ok(Self {
+            encoder,
+            q: [q0, q1],
+        })
     }
 
     /// Features for the Q-networks: own encoder, or the actor's (shared, read without gradient).
@@ -385,7 +428,14 @@ impl SacModel {
         let critic = Critic::new(&net, "critic", own, &mut critic_params, &mut rng, device)?;
         // The target always owns an encoder: with sharing it tracks the actor's (as in SB3).
         let mut target_params = ParamStore::new();
-        let critic_target = Critic::new(&net, "critic_target", true, &mut target_params, &mut rng, device)?;
+        let critic_target = Critic::new(
+            &net,
+            "critic_target",
+            true,
+            &mut target_params,
+            &mut rng,
+            device,
+        )?;
         let mut alpha_params = ParamStore::new();
         let log_alpha = alpha_params.push(
             "log_alpha".into(),
@@ -412,11 +462,12 @@ impl SacModel {
     /// was built like the critic (encoder, q0, q1), so with an own encoder the sources are the
     /// critic's parameters in order; with a shared one the actor's encoder comes first.
     pub fn target_pairs(&self) -> impl Iterator<Item = (&Var, &Var)> {
-        let shared_encoder = self
-            .actor_params
-            .iter()
-            .filter(|(name, _)| self.critic.encoder.is_none() && name.starts_with("actor.encoder."));
-        let sources = shared_encoder.chain(self.critic_params.iter()).map(|(_, v)| v);
+        let shared_encoder = self.actor_params.iter().filter(|(name, _)| {
+            self.critic.encoder.is_none() && name.starts_with("actor.encoder.")
+        });
+        let sources = shared_encoder
+            .chain(self.critic_params.iter())
+            .map(|(_, v)| v);
         self.target_params.vars().zip(sources)
     }
 
@@ -462,7 +513,11 @@ pub struct Policy {
 
 impl Policy {
     pub fn new(meta: CheckpointMeta, actor: Actor, device: Device) -> Self {
-        Self { meta, actor, device }
+        Self {
+            meta,
+            actor,
+            device,
+        }
     }
 
     pub fn net(&self) -> &NetConfig {
@@ -478,6 +533,7 @@ impl Policy {
         mode: ActionMode,
         noise: Option<&[f32]>,
     ) -> Result<Vec<Decision>> {
-        self.actor.decide(&self.meta.net, &self.device, obs, window, mode, noise)
+        self.actor
+            .decide(&self.meta.net, &self.device, obs, window, mode, noise)
     }
 }

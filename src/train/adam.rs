@@ -28,7 +28,11 @@ struct Slot {
 impl Adam {
     pub fn new<'a>(vars: impl Iterator<Item = &'a Var>, lr: f64) -> Self {
         let slots = vars
-            .map(|var| Slot { var: var.clone(), m: vec![0.0; var.elem_count()], v: vec![0.0; var.elem_count()] })
+            .map(|var| Slot {
+                var: var.clone(),
+                m: vec![0.0; var.elem_count()],
+                v: vec![0.0; var.elem_count()],
+            })
             .collect();
         Self { lr, t: 0, slots }
     }
@@ -42,7 +46,9 @@ impl Adam {
         let bc2_sqrt = bc2.sqrt() as f32;
         let (b1, b2, eps) = (BETA1 as f32, BETA2 as f32, EPS as f32);
         for slot in &mut self.slots {
-            let Some(grad) = grads.get(&slot.var) else { continue };
+            let Some(grad) = grads.get(&slot.var) else {
+                continue;
+            };
             let g = grad.flatten_all()?.to_vec1::<f32>()?;
             let mut theta = slot.var.flatten_all()?.to_vec1::<f32>()?;
             for i in 0..theta.len() {
@@ -51,7 +57,11 @@ impl Adam {
                 let denom = slot.v[i].sqrt() / bc2_sqrt + eps;
                 theta[i] -= step_size * slot.m[i] / denom;
             }
-            slot.var.set(&Tensor::from_vec(theta, slot.var.shape(), slot.var.device())?)?;
+            slot.var.set(&Tensor::from_vec(
+                theta,
+                slot.var.shape(),
+                slot.var.device(),
+            )?)?;
         }
         Ok(())
     }
@@ -62,13 +72,25 @@ impl Adam {
     }
 
     /// Restores the moments saved by [`Self::moments`].
-    pub fn set_moments(&mut self, t: u64, moments: Vec<(Vec<f32>, Vec<f32>)>) -> std::result::Result<(), String> {
+    pub fn set_moments(
+        &mut self,
+        t: u64,
+        moments: Vec<(Vec<f32>, Vec<f32>)>,
+    ) -> std::result::Result<(), String> {
         if moments.len() != self.slots.len() {
-            return Err(format!("{} moment pairs for {} parameters", moments.len(), self.slots.len()));
+            return Err(format!(
+                "{} moment pairs for {} parameters",
+                moments.len(),
+                self.slots.len()
+            ));
         }
         for (i, (slot, (m, v))) in self.slots.iter_mut().zip(moments).enumerate() {
             if m.len() != slot.m.len() || v.len() != slot.v.len() {
-                return Err(format!("parameter {i}: moments of {} values, expected {}", m.len(), slot.m.len()));
+                return Err(format!(
+                    "parameter {i}: moments of {} values, expected {}",
+                    m.len(),
+                    slot.m.len()
+                ));
             }
             slot.m = m;
             slot.v = v;
@@ -113,7 +135,12 @@ mod tests {
         let var = Var::new(&[5.0f32], &Device::Cpu).unwrap();
         let mut adam = Adam::new([&var].into_iter(), 0.1);
         for _ in 0..500 {
-            let loss = (var.as_tensor() - 2.0).unwrap().sqr().unwrap().sum_all().unwrap();
+            let loss = (var.as_tensor() - 2.0)
+                .unwrap()
+                .sqr()
+                .unwrap()
+                .sum_all()
+                .unwrap();
             adam.step(&loss.backward().unwrap()).unwrap();
         }
         assert!((var.to_vec1::<f32>().unwrap()[0] - 2.0).abs() < 1e-2);

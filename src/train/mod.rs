@@ -50,7 +50,10 @@ pub enum TrainError {
     #[error("{path}: {reason}")]
     State { path: PathBuf, reason: String },
     #[error("cannot write {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("invalid training options: {0}")]
     Options(String),
     #[error("training diverged at step {step}: {what} is not finite")]
@@ -158,7 +161,11 @@ pub struct TrainSummary {
 }
 
 /// Trains on the damaged Ant (fresh, or resumed from `opts.out` when `resume`).
-pub fn train_ant(opts: TrainOptions, resume: bool, stop: Arc<AtomicBool>) -> Result<TrainSummary, TrainError> {
+pub fn train_ant(
+    opts: TrainOptions,
+    resume: bool,
+    stop: Arc<AtomicBool>,
+) -> Result<TrainSummary, TrainError> {
     let mut env_config = opts.env.clone();
     if resume {
         env_config = checkpoint::read_meta(&opts.out)?.env;
@@ -195,9 +202,16 @@ pub fn train(
             model_crc32: 0,
         };
         let net = &opts.net;
-        let window_len = if net.encoder.uses_window() { net.context_len } else { 0 };
+        let window_len = if net.encoder.uses_window() {
+            net.context_len
+        } else {
+            0
+        };
         let replay = ReplayBuffer::new(opts.sac.buffer_size, net.obs_dim, net.act_dim, window_len);
-        std::fs::create_dir_all(&opts.out).map_err(|source| TrainError::Io { path: opts.out.clone(), source })?;
+        std::fs::create_dir_all(&opts.out).map_err(|source| TrainError::Io {
+            path: opts.out.clone(),
+            source,
+        })?;
         truncate_metrics(&opts.out, 0)?;
         (learner, state, replay)
     };
@@ -206,7 +220,10 @@ pub fn train(
     let progress = progress_bar(&opts, state.steps_done);
 
     // A resumed run restarts the episode it was in, from a seed derived from the step count.
-    let mut obs = task.reset_with_seed(opts.seed.wrapping_add(state.steps_done.wrapping_mul(0x9E37)));
+    let mut obs = task.reset_with_seed(
+        opts.seed
+            .wrapping_add(state.steps_done.wrapping_mul(0x9E37)),
+    );
     let mut window = ContextWindow::with_dims(net.context_len, net.obs_dim, net.act_dim);
     let mut encoder_window = vec![0f32; net.context_len * net.entry_dim()];
     let (mut t_in_episode, mut episode_return) = (0usize, 0.0);
@@ -228,20 +245,33 @@ pub fn train(
 
         // Act: uniform warm-up, then a squashed-Gaussian sample from the actor.
         let action: Vec<f64> = if global_step < opts.sac.learning_starts as u64 {
-            (0..net.act_dim).map(|_| state.action_rng.random_range(-1.0..=1.0)).collect()
+            (0..net.act_dim)
+                .map(|_| state.action_rng.random_range(-1.0..=1.0))
+                .collect()
         } else {
             let obs32: Vec<f32> = obs.iter().map(|&v| v as f32).collect();
-            let noise: Vec<f32> =
-                (0..net.act_dim).map(|_| state.action_rng.sample::<f32, _>(StandardNormal)).collect();
+            let noise: Vec<f32> = (0..net.act_dim)
+                .map(|_| state.action_rng.sample::<f32, _>(StandardNormal))
+                .collect();
             let window_arg = if net.encoder.uses_window() {
                 encoder_window.copy_from_slice(window.as_slice());
                 Some(&encoder_window[..])
             } else {
                 None
             };
-            let decision =
-                learner.model.actor.decide(&net, &device, &obs32, window_arg, ActionMode::Sampled, Some(&noise))?;
-            decision.into_iter().next().map(|d| d.action).unwrap_or_default()
+            let decision = learner.model.actor.decide(
+                &net,
+                &device,
+                &obs32,
+                window_arg,
+                ActionMode::Sampled,
+                Some(&noise),
+            )?;
+            decision
+                .into_iter()
+                .next()
+                .map(|d| d.action)
+                .unwrap_or_default()
         };
 
         // Step the env and store the transition.
@@ -280,21 +310,39 @@ pub fn train(
         }
 
         // Learn: one gradient step per env step once warm-up is over.
-        if state.steps_done > opts.sac.learning_starts as u64 {
+        let warmed_up = state.steps_done > opts.sac.learning_starts as u64
+            && replay.len()
+                >= opts
+                    .sac
+                    .learning_starts
+                    .max(opts.sac.batch_size.min(replay.capacity()));
+        if warmed_up {
             learning_started.get_or_insert_with(|| (state.steps_done, Instant::now()));
             replay.sample(opts.sac.batch_size, &mut state.update_rng, &mut batch);
             last_stats = learner.update(&batch, &mut state.update_rng)?;
-            for (what, v) in [("critic loss", last_stats.qf1_loss), ("actor loss", last_stats.actor_loss)] {
+            for (what, v) in [
+                ("critic loss", last_stats.qf1_loss),
+                ("actor loss", last_stats.actor_loss),
+            ] {
                 if !v.is_finite() {
-                    return Err(TrainError::Diverged { step: state.steps_done, what });
+                    return Err(TrainError::Diverged {
+                        step: state.steps_done,
+                        what,
+                    });
                 }
             }
         }
 
         let elapsed = started.elapsed().as_secs_f64();
         let sps = (state.steps_done - start_step) as f64 / elapsed.max(1e-9);
-        if state.steps_done.is_multiple_of(opts.log_every) && state.steps_done > opts.sac.learning_starts as u64 {
-            metrics.write(&UpdateMetrics { global_step: state.steps_done, stats: last_stats, sps })?;
+        if state.steps_done.is_multiple_of(opts.log_every)
+            && state.steps_done > opts.sac.learning_starts as u64
+        {
+            metrics.write(&UpdateMetrics {
+                global_step: state.steps_done,
+                stats: last_stats,
+                sps,
+            })?;
         }
         if let Some(bar) = &progress {
             bar.set_position(state.steps_done);
@@ -302,7 +350,9 @@ pub fn train(
                 bar.set_message(recent.describe(sps));
             }
         }
-        if state.steps_done.is_multiple_of(opts.checkpoint_every) && state.steps_done < opts.total_steps {
+        if state.steps_done.is_multiple_of(opts.checkpoint_every)
+            && state.steps_done < opts.total_steps
+        {
             state.wall_time_s = wall_before + elapsed;
             save_run(&opts, &learner, &mut state, &replay)?;
         }
@@ -315,7 +365,9 @@ pub fn train(
     state.wall_time_s = wall_before + elapsed;
     save_run(&opts, &learner, &mut state, &replay)?;
     if let Some(bar) = progress {
-        bar.finish_with_message(recent.describe((state.steps_done - start_step) as f64 / elapsed.max(1e-9)));
+        bar.finish_with_message(
+            recent.describe((state.steps_done - start_step) as f64 / elapsed.max(1e-9)),
+        );
     }
     Ok(TrainSummary {
         steps_done: state.steps_done,
@@ -339,7 +391,9 @@ fn validate_fresh(opts: &TrainOptions, task: &impl Task) -> Result<(), TrainErro
         ));
     }
     if opts.total_steps == 0 || opts.checkpoint_every == 0 || opts.log_every == 0 {
-        return bad("--steps, the checkpoint interval and the log interval must be at least 1".into());
+        return bad(
+            "--steps, the checkpoint interval and the log interval must be at least 1".into(),
+        );
     }
     if opts.sac.batch_size == 0 || opts.sac.buffer_size == 0 {
         return bad("batch size and buffer size must be at least 1".into());
@@ -376,19 +430,34 @@ fn save_run(
     // train_state.json, whose CRC no longer matches the new weights, and resume says so.
     let optimizers = [&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt];
     let tensors = optimizer_tensors(&optimizers)?;
-    write_atomic(&opts.out.join(OPTIMIZER_FILE), &safetensors_bytes(tensors.iter().map(|(n, t)| (n.as_str(), t)))?)?;
+    write_atomic(
+        &opts.out.join(OPTIMIZER_FILE),
+        &safetensors_bytes(tensors.iter().map(|(n, t)| (n.as_str(), t)))?,
+    )?;
     if opts.save_replay {
         let path = opts.out.join(REPLAY_FILE);
         let mut bytes = Vec::new();
-        replay.write_to(&mut bytes).map_err(|source| TrainError::Io { path: path.clone(), source })?;
+        replay
+            .write_to(&mut bytes)
+            .map_err(|source| TrainError::Io {
+                path: path.clone(),
+                source,
+            })?;
         write_atomic(&path, &bytes)?;
     }
     let meta = learner.model.save(&opts.out, &record)?;
-    state.adam_steps = [learner.actor_opt.t, learner.critic_opt.t, learner.alpha_opt.t];
+    state.adam_steps = [
+        learner.actor_opt.t,
+        learner.critic_opt.t,
+        learner.alpha_opt.t,
+    ];
     state.replay_saved = opts.save_replay;
     state.model_crc32 = meta.model_crc32;
     let path = opts.out.join(STATE_FILE);
-    let json = serde_json::to_vec_pretty(state).map_err(|e| TrainError::State { path: path.clone(), reason: e.to_string() })?;
+    let json = serde_json::to_vec_pretty(state).map_err(|e| TrainError::State {
+        path: path.clone(),
+        reason: e.to_string(),
+    })?;
     write_atomic(&path, &json)?;
     Ok(())
 }
@@ -397,14 +466,23 @@ fn optimizer_tensors(optimizers: &[&Adam; 3]) -> Result<Vec<(String, Tensor)>, T
     let mut out = Vec::new();
     for (group, opt) in ["actor", "critic", "alpha"].iter().zip(optimizers) {
         for (i, (m, v)) in opt.moments().enumerate() {
-            out.push((format!("{group}.{i:03}.m"), Tensor::from_slice(m, m.len(), &Device::Cpu)?));
-            out.push((format!("{group}.{i:03}.v"), Tensor::from_slice(v, v.len(), &Device::Cpu)?));
+            out.push((
+                format!("{group}.{i:03}.m"),
+                Tensor::from_slice(m, m.len(), &Device::Cpu)?,
+            ));
+            out.push((
+                format!("{group}.{i:03}.v"),
+                Tensor::from_slice(v, v.len(), &Device::Cpu)?,
+            ));
         }
     }
     Ok(out)
 }
 
-fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<(SacLearner, TrainState, ReplayBuffer), TrainError> {
+fn resume_run(
+    opts: &mut TrainOptions,
+    device: &Device,
+) -> Result<(SacLearner, TrainState, ReplayBuffer), TrainError> {
     let dir = opts.out.clone();
     let (model, meta) = SacModel::load(&dir, Some(opts.net.encoder), device)?;
     // The run's own settings win over the command line's, except the total step count.
@@ -413,10 +491,14 @@ fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<(SacLearner, T
     opts.env = meta.env.clone();
     opts.seed = meta.seed;
     let state_path = dir.join(STATE_FILE);
-    let text = std::fs::read_to_string(&state_path)
-        .map_err(|e| TrainError::State { path: state_path.clone(), reason: format!("cannot read ({e}); was this folder written by `gaitscope train`?") })?;
-    let state: TrainState =
-        serde_json::from_str(&text).map_err(|e| TrainError::State { path: state_path.clone(), reason: e.to_string() })?;
+    let text = std::fs::read_to_string(&state_path).map_err(|e| TrainError::State {
+        path: state_path.clone(),
+        reason: format!("cannot read ({e}); was this folder written by `gaitscope train`?"),
+    })?;
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::State {
+        path: state_path.clone(),
+        reason: e.to_string(),
+    })?;
     if state.model_crc32 != meta.model_crc32 || state.steps_done != meta.steps_done {
         return Err(TrainError::State {
             path: state_path,
@@ -425,15 +507,24 @@ fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<(SacLearner, T
     }
     let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
     let opt_path = dir.join(OPTIMIZER_FILE);
-    let bytes = std::fs::read(&opt_path).map_err(|source| CheckpointError::Read { path: opt_path.clone(), source })?;
-    let expected: BTreeMap<String, Vec<usize>> = optimizer_tensors(&[&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt])?
-        .into_iter()
-        .map(|(n, t)| (n, t.dims().to_vec()))
-        .collect();
-    let tensors = load_expected_tensors(&dir, &opt_path, &bytes, &expected, opts.net.encoder, device)?;
+    let bytes = std::fs::read(&opt_path).map_err(|source| CheckpointError::Read {
+        path: opt_path.clone(),
+        source,
+    })?;
+    let expected: BTreeMap<String, Vec<usize>> =
+        optimizer_tensors(&[&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt])?
+            .into_iter()
+            .map(|(n, t)| (n, t.dims().to_vec()))
+            .collect();
+    let tensors =
+        load_expected_tensors(&dir, &opt_path, &bytes, &expected, opts.net.encoder, device)?;
     for ((group, opt), t) in ["actor", "critic", "alpha"]
         .iter()
-        .zip([&mut learner.actor_opt, &mut learner.critic_opt, &mut learner.alpha_opt])
+        .zip([
+            &mut learner.actor_opt,
+            &mut learner.critic_opt,
+            &mut learner.alpha_opt,
+        ])
         .zip(state.adam_steps)
     {
         let moments = (0..opt.len())
@@ -442,18 +533,35 @@ fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<(SacLearner, T
                 Ok((get("m")?, get("v")?))
             })
             .collect::<Result<Vec<_>, candle_core::Error>>()?;
-        opt.set_moments(t, moments).map_err(|reason| TrainError::State { path: opt_path.clone(), reason })?;
+        opt.set_moments(t, moments)
+            .map_err(|reason| TrainError::State {
+                path: opt_path.clone(),
+                reason,
+            })?;
     }
     let net = &opts.net;
-    let window_len = if net.encoder.uses_window() { net.context_len } else { 0 };
+    let window_len = if net.encoder.uses_window() {
+        net.context_len
+    } else {
+        0
+    };
     let mut replay = ReplayBuffer::new(opts.sac.buffer_size, net.obs_dim, net.act_dim, window_len);
-    if state.replay_saved {
-        let path = dir.join(REPLAY_FILE);
-        let file = std::fs::File::open(&path)
-            .map_err(|e| TrainError::State { path: path.clone(), reason: format!("cannot open ({e}); the saved state says it exists") })?;
+    let path = dir.join(REPLAY_FILE);
+    if state.replay_saved && path.exists() {
+        let file = std::fs::File::open(&path).map_err(|e| TrainError::State {
+            path: path.clone(),
+            reason: format!("cannot open: {e}"),
+        })?;
         replay
             .read_from(&mut std::io::BufReader::new(file))
             .map_err(|reason| TrainError::State { path, reason })?;
+    } else if state.replay_saved {
+        // replay.bin is git-ignored, so a fresh checkout resumes without it: the buffer refills
+        // from the current policy and updates wait until it holds `learning_starts` transitions.
+        eprintln!(
+            "note: {} is missing; resuming with an empty replay buffer",
+            path.display()
+        );
     }
     truncate_metrics(&dir, state.steps_done)?;
     Ok((learner, state, replay))
@@ -462,7 +570,9 @@ fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<(SacLearner, T
 /// Drops metric lines logged after `steps_done` (work lost since the last checkpoint).
 fn truncate_metrics(dir: &Path, steps_done: u64) -> Result<(), TrainError> {
     let path = dir.join(METRICS_FILE);
-    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(());
+    };
     let kept: String = text
         .lines()
         .filter(|line| {
@@ -513,12 +623,21 @@ impl MetricsLog {
             .create(true)
             .append(true)
             .open(&path)
-            .map_err(|source| TrainError::Io { path: path.clone(), source })?;
-        Ok(Self { path, file: std::io::BufWriter::new(file) })
+            .map_err(|source| TrainError::Io {
+                path: path.clone(),
+                source,
+            })?;
+        Ok(Self {
+            path,
+            file: std::io::BufWriter::new(file),
+        })
     }
 
     fn write(&mut self, record: &impl Serialize) -> Result<(), TrainError> {
-        let io = |source| TrainError::Io { path: self.path.clone(), source };
+        let io = |source| TrainError::Io {
+            path: self.path.clone(),
+            source,
+        };
         serde_json::to_writer(&mut self.file, record).map_err(|e| io(e.into()))?;
         self.file.write_all(b"\n").map_err(io)?;
         self.file.flush().map_err(io)
@@ -533,7 +652,10 @@ struct RecentEpisodes {
 
 impl RecentEpisodes {
     fn new(capacity: usize) -> Self {
-        Self { capacity, episodes: VecDeque::new() }
+        Self {
+            capacity,
+            episodes: VecDeque::new(),
+        }
     }
     fn push(&mut self, ret: f64, success: bool) {
         if self.episodes.len() == self.capacity {
@@ -545,7 +667,11 @@ impl RecentEpisodes {
         let n = self.episodes.len().max(1) as f64;
         let ret = self.episodes.iter().map(|e| e.0).sum::<f64>() / n;
         let success = self.episodes.iter().filter(|e| e.1).count() as f64 / n;
-        format!("{sps:.0} steps/s  return {ret:.1}  success {:.0} % (last {})", 100.0 * success, self.episodes.len())
+        format!(
+            "{sps:.0} steps/s  return {ret:.1}  success {:.0} % (last {})",
+            100.0 * success,
+            self.episodes.len()
+        )
     }
 }
 
@@ -554,14 +680,21 @@ fn progress_bar(opts: &TrainOptions, position: u64) -> Option<indicatif::Progres
         return None;
     }
     let bar = indicatif::ProgressBar::new(opts.total_steps).with_position(position);
-    let style = indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed_precise} < {eta_precise}] {msg}")
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
+    let style = indicatif::ProgressStyle::with_template(
+        "{bar:30} {pos}/{len} [{elapsed_precise} < {eta_precise}] {msg}",
+    )
+    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
     bar.set_style(style);
     Some(bar)
 }
 
 /// The paper's training defaults for the Ant.
-pub fn ant_options(encoder: EncoderKind, total_steps: u64, seed: u64, out: PathBuf) -> TrainOptions {
+pub fn ant_options(
+    encoder: EncoderKind,
+    total_steps: u64,
+    seed: u64,
+    out: PathBuf,
+) -> TrainOptions {
     TrainOptions {
         net: NetConfig::ant(encoder),
         sac: SacConfig::default(),

@@ -88,9 +88,18 @@ impl ReplayBuffer {
 
     pub fn push(&mut self, t: Transition<'_>) {
         let i = self.pos;
-        copy_f32(&mut self.obs[i * self.obs_dim..(i + 1) * self.obs_dim], t.obs);
-        copy_f32(&mut self.actions[i * self.act_dim..(i + 1) * self.act_dim], t.action);
-        copy_f32(&mut self.next_obs[i * self.obs_dim..(i + 1) * self.obs_dim], t.next_obs);
+        copy_f32(
+            &mut self.obs[i * self.obs_dim..(i + 1) * self.obs_dim],
+            t.obs,
+        );
+        copy_f32(
+            &mut self.actions[i * self.act_dim..(i + 1) * self.act_dim],
+            t.action,
+        );
+        copy_f32(
+            &mut self.next_obs[i * self.obs_dim..(i + 1) * self.obs_dim],
+            t.next_obs,
+        );
         self.rewards[i] = t.reward as f32;
         self.terminated[i] = t.terminated;
         self.truncated[i] = t.truncated;
@@ -101,7 +110,11 @@ impl ReplayBuffer {
 
     /// Slot of the oldest stored transition.
     fn oldest(&self) -> usize {
-        if self.len < self.capacity { 0 } else { self.pos }
+        if self.len < self.capacity {
+            0
+        } else {
+            self.pos
+        }
     }
 
     /// Whether the history slot `i`'s window needs is still in the buffer (not overwritten).
@@ -118,13 +131,19 @@ impl ReplayBuffer {
         let t = self.t_in_episode[slot] as usize + usize::from(include_self);
         let real = t.min(k);
         out[..(k - real) * entry].fill(0.0);
-        let last = if include_self { slot } else { (slot + self.capacity - 1) % self.capacity };
+        let last = if include_self {
+            slot
+        } else {
+            (slot + self.capacity - 1) % self.capacity
+        };
         for n in 0..real {
             // Entry (k − real + n) holds the transition `real − 1 − n` steps before `last`.
             let j = (last + self.capacity - (real - 1 - n)) % self.capacity;
             let dst = &mut out[(k - real + n) * entry..(k - real + n + 1) * entry];
-            dst[..self.obs_dim].copy_from_slice(&self.obs[j * self.obs_dim..(j + 1) * self.obs_dim]);
-            dst[self.obs_dim..].copy_from_slice(&self.actions[j * self.act_dim..(j + 1) * self.act_dim]);
+            dst[..self.obs_dim]
+                .copy_from_slice(&self.obs[j * self.obs_dim..(j + 1) * self.obs_dim]);
+            dst[self.obs_dim..]
+                .copy_from_slice(&self.actions[j * self.act_dim..(j + 1) * self.act_dim]);
         }
     }
 
@@ -149,8 +168,10 @@ impl ReplayBuffer {
                 }
             };
             batch.obs[b * od..(b + 1) * od].copy_from_slice(&self.obs[i * od..(i + 1) * od]);
-            batch.next_obs[b * od..(b + 1) * od].copy_from_slice(&self.next_obs[i * od..(i + 1) * od]);
-            batch.actions[b * ad..(b + 1) * ad].copy_from_slice(&self.actions[i * ad..(i + 1) * ad]);
+            batch.next_obs[b * od..(b + 1) * od]
+                .copy_from_slice(&self.next_obs[i * od..(i + 1) * od]);
+            batch.actions[b * ad..(b + 1) * ad]
+                .copy_from_slice(&self.actions[i * ad..(i + 1) * ad]);
             batch.rewards[b] = self.rewards[i];
             batch.terminated[b] = if self.terminated[i] { 1.0 } else { 0.0 };
             if k > 0 {
@@ -163,7 +184,14 @@ impl ReplayBuffer {
     /// Saves the buffer (little-endian, with a header) so `--resume` continues with it.
     pub fn write_to(&self, w: &mut impl Write) -> std::io::Result<()> {
         w.write_all(REPLAY_MAGIC)?;
-        for v in [self.capacity, self.obs_dim, self.act_dim, self.context_len, self.len, self.pos] {
+        for v in [
+            self.capacity,
+            self.obs_dim,
+            self.act_dim,
+            self.context_len,
+            self.len,
+            self.pos,
+        ] {
             w.write_all(&(v as u64).to_le_bytes())?;
         }
         for vec in [&self.obs, &self.actions, &self.rewards, &self.next_obs] {
@@ -183,7 +211,8 @@ impl ReplayBuffer {
     /// Reads a buffer saved by [`Self::write_to`]; its shape must match `self`'s.
     pub fn read_from(&mut self, r: &mut impl Read) -> Result<(), String> {
         let mut magic = [0u8; 8];
-        r.read_exact(&mut magic).map_err(|e| format!("header: {e}"))?;
+        r.read_exact(&mut magic)
+            .map_err(|e| format!("header: {e}"))?;
         if &magic != REPLAY_MAGIC {
             return Err("not a gaitscope replay file".into());
         }
@@ -194,17 +223,26 @@ impl ReplayBuffer {
             *h = u64::from_le_bytes(b) as usize;
         }
         let [capacity, obs_dim, act_dim, context_len, len, pos] = header;
-        if (capacity, obs_dim, act_dim, context_len) != (self.capacity, self.obs_dim, self.act_dim, self.context_len) {
+        if (capacity, obs_dim, act_dim, context_len)
+            != (self.capacity, self.obs_dim, self.act_dim, self.context_len)
+        {
             return Err(format!(
                 "saved buffer has capacity {capacity}, dims {obs_dim}/{act_dim}, window {context_len}; this run needs {}, {}/{}, {}",
                 self.capacity, self.obs_dim, self.act_dim, self.context_len
             ));
         }
         if len > capacity || pos >= capacity {
-            return Err(format!("corrupt header: len {len}, pos {pos}, capacity {capacity}"));
+            return Err(format!(
+                "corrupt header: len {len}, pos {pos}, capacity {capacity}"
+            ));
         }
         let truncated = |e: std::io::Error| format!("truncated body: {e}");
-        for vec in [&mut self.obs, &mut self.actions, &mut self.rewards, &mut self.next_obs] {
+        for vec in [
+            &mut self.obs,
+            &mut self.actions,
+            &mut self.rewards,
+            &mut self.next_obs,
+        ] {
             let mut bytes = vec![0u8; vec.len() * 4];
             r.read_exact(&mut bytes).map_err(truncated)?;
             for (v, b) in vec.iter_mut().zip(bytes.chunks_exact(4)) {
@@ -257,7 +295,9 @@ mod tests {
         let mut obs = vec![0.0; obs_dim];
         let mut t_in_episode = 0;
         for global in 0..200usize {
-            let action: Vec<f64> = (0..act_dim).map(|a| (global * 10 + a) as f64 + 0.5).collect();
+            let action: Vec<f64> = (0..act_dim)
+                .map(|a| (global * 10 + a) as f64 + 0.5)
+                .collect();
             let next_obs: Vec<f64> = (0..obs_dim).map(|o| (global * 100 + o) as f64).collect();
             let before = window.as_slice().to_vec();
             window.push(&obs, &action);
@@ -302,7 +342,11 @@ mod tests {
         assert!(checked > capacity - k, "checked {checked}");
         // The sampler uses the same windows.
         let mut batch = Batch::default();
-        buffer.sample(64, &mut rand_chacha::ChaCha8Rng::seed_from_u64(0), &mut batch);
+        buffer.sample(
+            64,
+            &mut rand_chacha::ChaCha8Rng::seed_from_u64(0),
+            &mut batch,
+        );
         assert_eq!(batch.window.len(), 64 * wdim);
         for b in 0..64 {
             let obs0 = batch.obs[b * obs_dim];
@@ -311,7 +355,10 @@ mod tests {
                 buffer.obs[s * obs_dim] == obs0 && g >= 200 - capacity
             });
             let step = step.expect("sampled transition is stored");
-            assert_eq!(&batch.window[b * wdim..(b + 1) * wdim], online[&step].0.as_slice());
+            assert_eq!(
+                &batch.window[b * wdim..(b + 1) * wdim],
+                online[&step].0.as_slice()
+            );
         }
     }
 
@@ -338,7 +385,17 @@ mod tests {
         assert_eq!(restored.obs, buffer.obs);
         assert_eq!(restored.t_in_episode, buffer.t_in_episode);
         let mut wrong = ReplayBuffer::new(6, 2, 1, 2);
-        assert!(wrong.read_from(&mut bytes.as_slice()).unwrap_err().contains("capacity 5"));
-        assert!(restored.read_from(&mut &bytes[..40]).unwrap_err().contains("truncated"));
+        assert!(
+            wrong
+                .read_from(&mut bytes.as_slice())
+                .unwrap_err()
+                .contains("capacity 5")
+        );
+        assert!(
+            restored
+                .read_from(&mut &bytes[..40])
+                .unwrap_err()
+                .contains("truncated")
+        );
     }
 }

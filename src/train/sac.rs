@@ -61,15 +61,26 @@ impl SacLearner {
     fn inputs(&self, batch: &Batch) -> Result<(PolicyInput, PolicyInput)> {
         let net = &self.model.net;
         let windows = net.encoder.uses_window();
-        let now = PolicyInput::from_slices(net, &batch.obs, windows.then_some(&batch.window[..]), &self.device)?;
-        let next =
-            PolicyInput::from_slices(net, &batch.next_obs, windows.then_some(&batch.next_window[..]), &self.device)?;
+        let now = PolicyInput::from_slices(
+            net,
+            &batch.obs,
+            windows.then_some(&batch.window[..]),
+            &self.device,
+        )?;
+        let next = PolicyInput::from_slices(
+            net,
+            &batch.next_obs,
+            windows.then_some(&batch.next_window[..]),
+            &self.device,
+        )?;
         Ok((now, next))
     }
 
     fn noise(&self, b: usize, rng: &mut ChaCha8Rng) -> Result<Tensor> {
         let act = self.model.net.act_dim;
-        let values: Vec<f32> = (0..b * act).map(|_| rng.sample::<f32, _>(StandardNormal)).collect();
+        let values: Vec<f32> = (0..b * act)
+            .map(|_| rng.sample::<f32, _>(StandardNormal))
+            .collect();
         Tensor::from_vec(values, (b, act), &self.device)
     }
 
@@ -83,7 +94,10 @@ impl SacLearner {
         let actor_out = model.actor.forward(&input, Grad::Track)?;
         let (action_pi, log_prob_pi) = squashed_sample(&actor_out, &self.noise(b, rng)?)?;
         let alpha = model.alpha()?;
-        let alpha_loss = (model.log_alpha.as_tensor().broadcast_mul(&(log_prob_pi.detach() + self.target_entropy)?)?
+        let alpha_loss = (model
+            .log_alpha
+            .as_tensor()
+            .broadcast_mul(&(log_prob_pi.detach() + self.target_entropy)?)?
             .mean_all()?
             * -1.0)?;
         let alpha_grads = alpha_loss.backward()?;
@@ -93,16 +107,25 @@ impl SacLearner {
         let target_q = {
             let next_out = model.actor.forward(&next_input, Grad::Frozen)?;
             let (next_action, next_log_prob) = squashed_sample(&next_out, &self.noise(b, rng)?)?;
-            let next_features = model.critic_target.features(&next_input, &model.actor.encoder, Grad::Frozen)?;
-            let [q1, q2] = model.critic_target.q_values(&next_features, &next_action, Grad::Frozen)?;
+            let next_features =
+                model
+                    .critic_target
+                    .features(&next_input, &model.actor.encoder, Grad::Frozen)?;
+            let [q1, q2] =
+                model
+                    .critic_target
+                    .q_values(&next_features, &next_action, Grad::Frozen)?;
             let next_q = (q1.minimum(&q2)? - (next_log_prob * alpha)?)?;
             let rewards = Tensor::from_slice(&batch.rewards, (b, 1), &self.device)?;
-            let not_done = Tensor::from_slice(&batch.terminated, (b, 1), &self.device)?.affine(-1.0, 1.0)?;
+            let not_done =
+                Tensor::from_slice(&batch.terminated, (b, 1), &self.device)?.affine(-1.0, 1.0)?;
             // Bootstrap cut on termination only: a truncated episode still has a future.
             (rewards + (not_done * next_q)?.affine(self.config.gamma, 0.0)?)?.detach()
         };
         let actions = Tensor::from_slice(&batch.actions, (b, model.net.act_dim), &self.device)?;
-        let features = model.critic.features(&input, &model.actor.encoder, Grad::Track)?;
+        let features = model
+            .critic
+            .features(&input, &model.actor.encoder, Grad::Track)?;
         let [q1, q2] = model.critic.q_values(&features, &actions, Grad::Track)?;
         let qf1_loss = (&q1 - &target_q)?.sqr()?.mean_all()?;
         let qf2_loss = (&q2 - &target_q)?.sqr()?.mean_all()?;
@@ -113,8 +136,13 @@ impl SacLearner {
         // --- actor -------------------------------------------------------------------------------
         // The critic (just updated) is frozen: gradients reach the action, not its weights.
         let model = &self.model;
-        let features_pi = model.critic.features(&input, &model.actor.encoder, Grad::Frozen)?.detach();
-        let [q1_pi, q2_pi] = model.critic.q_values(&features_pi, &action_pi, Grad::Frozen)?;
+        let features_pi = model
+            .critic
+            .features(&input, &model.actor.encoder, Grad::Frozen)?
+            .detach();
+        let [q1_pi, q2_pi] = model
+            .critic
+            .q_values(&features_pi, &action_pi, Grad::Frozen)?;
         let min_q_pi = q1_pi.minimum(&q2_pi)?;
         let actor_loss = ((log_prob_pi * alpha)? - min_q_pi)?.mean_all()?;
         let actor_grads = actor_loss.backward()?;
