@@ -7,6 +7,8 @@ pub mod bench;
 pub mod config;
 pub mod damage;
 pub mod env;
+pub mod eval;
+pub mod plots;
 pub mod policy;
 pub mod rollout;
 pub mod train;

@@ -30,6 +30,8 @@ enum Command {
     Rollout(RolloutArgs),
     /// Train a SAC policy (optionally with a context encoder) on the damaged Ant.
     Train(TrainArgs),
+    /// Evaluate checkpoints under each damage condition (paired seeds, Wilson intervals, McNemar).
+    Eval(EvalArgs),
     /// Measure performance.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -133,6 +135,29 @@ struct TrainArgs {
     env: EnvArgs,
 }
 
+#[derive(Args)]
+struct EvalArgs {
+    /// Checkpoint folders (give a baseline and encoders to get paired tests and the recovery fraction).
+    #[arg(long = "checkpoint", value_name = "DIR", required = true, num_args = 1..)]
+    checkpoints: Vec<PathBuf>,
+    #[arg(long, default_value_t = 100)]
+    episodes: usize,
+    /// Conditions to evaluate (default: all three).
+    #[arg(long, num_args = 1.., value_name = "healthy|mild|severe")]
+    conditions: Vec<Condition>,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// First evaluation seed; episode i uses seed + i for every model.
+    #[arg(long, default_value_t = gaitscope::eval::EVAL_SEED_BASE)]
+    seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Folder for eval.json and the figures.
+    #[arg(long, value_name = "DIR", default_value = "eval")]
+    out: PathBuf,
+}
+
 #[derive(Subcommand)]
 enum BenchCommand {
     /// Env steps/s with random actions against bare MuJoCo on the same model.
@@ -169,7 +194,7 @@ fn main() {
         if is_broken_pipe(&err) {
             return; // e.g. `gaitscope rollout --jsonl ... | head`
         }
-        eprintln!("error: {err:#}");
+        eprintln!("error: {}", error_chain(&err));
         std::process::exit(1);
     }
 }
@@ -178,6 +203,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Rollout(args) => rollout_command(args),
         Command::Train(args) => train_command(args),
+        Command::Eval(args) => eval_command(args),
         Command::Bench(BenchCommand::Env { steps, runs, env }) => {
             if steps == 0 {
                 bail!("--steps must be at least 1");
@@ -309,6 +335,54 @@ fn train_command(args: TrainArgs) -> Result<()> {
         out.display()
     );
     Ok(())
+}
+
+fn eval_command(args: EvalArgs) -> Result<()> {
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let conditions = if args.conditions.is_empty() {
+        Condition::ALL.to_vec()
+    } else {
+        args.conditions
+    };
+    let opts = gaitscope::eval::EvalOptions {
+        checkpoints: args.checkpoints,
+        episodes: args.episodes,
+        seed_base: args.seed,
+        conditions,
+        max_steps: args.max_steps,
+        threads,
+    };
+    let report = gaitscope::eval::evaluate(&opts)?;
+    println!("{}", report.markdown());
+    for (model, secs) in &report.wall_time_s {
+        let n = opts.episodes * opts.conditions.len();
+        eprintln!(
+            "{model}: {n} episodes in {secs:.1} s ({:.1} episodes/s, {threads} threads)",
+            n as f64 / secs
+        );
+    }
+    for path in gaitscope::eval::write_outputs(&report, &args.out)? {
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+/// The error and its causes, skipping a cause whose text its parent's message already contains
+/// (our library errors name their cause inline).
+fn error_chain(err: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in err.chain() {
+        let part = cause.to_string();
+        if !text.contains(&part) {
+            if !text.is_empty() {
+                text.push_str(": ");
+            }
+            text.push_str(&part);
+        }
+    }
+    text
 }
 
 fn is_broken_pipe(err: &anyhow::Error) -> bool {

@@ -1,0 +1,549 @@
+//! `gaitscope eval`: every model × condition on the same evaluation seeds, deterministic
+//! actions, 500-step limit; success@250/350/500 with Wilson intervals, McNemar's paired test of
+//! each encoder against the baseline, and the recovery fraction.
+//!
+//! Episodes run in parallel across cores; within a worker, its episodes step in lockstep so the
+//! policy sees one batch per step instead of one call per env.
+
+pub mod stats;
+
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use crate::config::GaitConfig;
+use crate::damage::{Condition, ConditionChoice, N_ACTUATORS};
+use crate::env::{AntEnv, EnvError};
+use crate::plots::{self, ErrorBarSeries, PlotError};
+use crate::policy::checkpoint::{CheckpointError, write_atomic};
+use crate::policy::{ActionMode, EncoderKind, Policy};
+use crate::window::ContextWindow;
+use stats::{McNemar, Rate, mcnemar, recovery_fraction};
+
+/// Evaluation seeds start here: training seeds are small integers and streams derived from them.
+pub const EVAL_SEED_BASE: u64 = 1_000_000_000;
+/// Success is also reported within these step budgets (the paper's).
+pub const SUCCESS_BUDGETS: [usize; 3] = [250, 350, 500];
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error("policy inference failed for {model}: {source}")]
+    Policy {
+        model: String,
+        source: candle_core::Error,
+    },
+    #[error(transparent)]
+    Plot(#[from] PlotError),
+    #[error("cannot write {path}: {reason}")]
+    Write { path: PathBuf, reason: String },
+    #[error("invalid evaluation options: {0}")]
+    Options(String),
+}
+
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
+    pub checkpoints: Vec<PathBuf>,
+    pub episodes: usize,
+    pub seed_base: u64,
+    pub conditions: Vec<Condition>,
+    pub max_steps: usize,
+    pub threads: usize,
+}
+
+/// One evaluated episode.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EpisodeRecord {
+    pub model: String,
+    pub encoder: EncoderKind,
+    pub condition: Condition,
+    pub episode: usize,
+    pub seed: u64,
+    pub success: bool,
+    pub steps: usize,
+    /// Steps taken when the goal was reached.
+    pub steps_to_success: Option<usize>,
+    pub final_distance: f64,
+    #[serde(rename = "return")]
+    pub episode_return: f64,
+    pub triggered_joints: usize,
+    pub trigger_steps: [Option<usize>; N_ACTUATORS],
+}
+
+impl EpisodeRecord {
+    pub fn success_within(&self, budget: usize) -> bool {
+        self.steps_to_success.is_some_and(|s| s <= budget)
+    }
+}
+
+/// One model under one condition.
+#[derive(Debug, Clone, Serialize)]
+pub struct CellSummary {
+    pub model: String,
+    pub encoder: EncoderKind,
+    pub condition: Condition,
+    /// Success within each budget of [`SUCCESS_BUDGETS`].
+    pub success: BTreeMap<usize, Rate>,
+    pub mean_final_distance: f64,
+    pub mean_return: f64,
+    pub mean_steps_to_success: Option<f64>,
+}
+
+/// An encoder against the baseline under one condition (paired on seeds).
+#[derive(Debug, Clone, Serialize)]
+pub struct Comparison {
+    pub baseline: String,
+    pub encoder: String,
+    pub condition: Condition,
+    /// Paired test on success@500: b = baseline only, c = encoder only.
+    pub mcnemar: McNemar,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalReport {
+    pub episodes_per_cell: usize,
+    pub max_steps: usize,
+    pub seeds: Vec<u64>,
+    pub cells: Vec<CellSummary>,
+    pub comparisons: Vec<Comparison>,
+    /// Per encoder model: RF on success@500 against the baseline.
+    pub recovery_fraction: BTreeMap<String, Option<f64>>,
+    /// Seconds spent per model.
+    pub wall_time_s: BTreeMap<String, f64>,
+    pub episodes: Vec<EpisodeRecord>,
+}
+
+/// Label of a checkpoint in tables: its folder name.
+pub fn model_label(dir: &Path) -> String {
+    dir.file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("model")
+        .to_string()
+}
+
+/// Runs the evaluation (no files written; see [`write_outputs`]).
+pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
+    if opts.checkpoints.is_empty()
+        || opts.episodes == 0
+        || opts.conditions.is_empty()
+        || opts.max_steps == 0
+    {
+        return Err(EvalError::Options(
+            "need at least one checkpoint, episode, condition and step".into(),
+        ));
+    }
+    let seeds: Vec<u64> = (0..opts.episodes as u64)
+        .map(|i| opts.seed_base + i)
+        .collect();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(opts.threads.max(1))
+        .build()
+        .map_err(|e| EvalError::Options(format!("thread pool: {e}")))?;
+    let mut labels = Vec::new();
+    let mut episodes = Vec::new();
+    let mut wall_time_s = BTreeMap::new();
+    for dir in &opts.checkpoints {
+        let policy = Policy::load(dir, None)?;
+        let mut label = model_label(dir);
+        while labels.contains(&label) {
+            label.push('\'');
+        }
+        labels.push(label.clone());
+        let started = Instant::now();
+        for &condition in &opts.conditions {
+            let mut config = policy.meta.env.clone();
+            config.damage.condition = ConditionChoice::Fixed(condition);
+            config.env.max_episode_steps = opts.max_steps;
+            let chunk = seeds.len().div_ceil(opts.threads.max(1) * 2).max(1);
+            let batches: Vec<Result<Vec<EpisodeRecord>, EvalError>> = pool.install(|| {
+                seeds
+                    .par_chunks(chunk)
+                    .enumerate()
+                    .map(|(c, chunk_seeds)| {
+                        run_lockstep(&policy, &label, &config, condition, chunk_seeds, c * chunk)
+                    })
+                    .collect()
+            });
+            for batch in batches {
+                episodes.extend(batch?);
+            }
+        }
+        wall_time_s.insert(label, started.elapsed().as_secs_f64());
+    }
+    Ok(summarize(episodes, opts, seeds, wall_time_s))
+}
+
+/// Runs one episode per seed, all stepping together, one batched policy call per step.
+pub fn run_lockstep(
+    policy: &Policy,
+    label: &str,
+    config: &GaitConfig,
+    condition: Condition,
+    seeds: &[u64],
+    first_episode: usize,
+) -> Result<Vec<EpisodeRecord>, EvalError> {
+    let net = policy.net().clone();
+    let uses_window = net.encoder.uses_window();
+    let mut envs = seeds
+        .iter()
+        .map(|&s| AntEnv::new(config.clone(), s))
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut windows: Vec<ContextWindow> = seeds
+        .iter()
+        .map(|_| ContextWindow::new(net.context_len))
+        .collect();
+    let mut obs: Vec<_> = envs
+        .iter_mut()
+        .zip(seeds)
+        .map(|(e, &s)| e.reset_with_seed(s))
+        .collect();
+    let mut records: Vec<Option<EpisodeRecord>> = vec![None; seeds.len()];
+    let mut returns = vec![0.0; seeds.len()];
+    let (mut obs_batch, mut window_batch) = (Vec::new(), Vec::new());
+    loop {
+        let active: Vec<usize> = (0..seeds.len()).filter(|&i| records[i].is_none()).collect();
+        if active.is_empty() {
+            break;
+        }
+        obs_batch.clear();
+        window_batch.clear();
+        for &i in &active {
+            obs_batch.extend(obs[i].iter().map(|&v| v as f32));
+            if uses_window {
+                window_batch.extend_from_slice(windows[i].as_slice());
+            }
+        }
+        let decisions = policy
+            .act_batch(
+                &obs_batch,
+                uses_window.then_some(&window_batch[..]),
+                ActionMode::Deterministic,
+                None,
+            )
+            .map_err(|source| EvalError::Policy {
+                model: label.to_string(),
+                source,
+            })?;
+        for (&i, decision) in active.iter().zip(decisions) {
+            let out = envs[i].step(&decision.action)?;
+            windows[i].push(&obs[i], &decision.action);
+            returns[i] += out.reward.total;
+            obs[i] = out.obs;
+            if out.done() {
+                let damage = envs[i].damage();
+                records[i] = Some(EpisodeRecord {
+                    model: label.to_string(),
+                    encoder: net.encoder,
+                    condition,
+                    episode: first_episode + i,
+                    seed: seeds[i],
+                    success: out.success,
+                    steps: out.step + 1,
+                    steps_to_success: out.success.then_some(out.step + 1),
+                    final_distance: out.distance,
+                    episode_return: returns[i],
+                    triggered_joints: damage.n_triggered(),
+                    trigger_steps: damage.first_trigger_steps(),
+                });
+            }
+        }
+    }
+    Ok(records.into_iter().flatten().collect())
+}
+
+fn summarize(
+    episodes: Vec<EpisodeRecord>,
+    opts: &EvalOptions,
+    seeds: Vec<u64>,
+    wall_time_s: BTreeMap<String, f64>,
+) -> EvalReport {
+    let mut models: Vec<(String, EncoderKind)> = Vec::new();
+    for e in &episodes {
+        if !models.iter().any(|(m, _)| m == &e.model) {
+            models.push((e.model.clone(), e.encoder));
+        }
+    }
+    let cell = |model: &str, condition: Condition| -> Vec<&EpisodeRecord> {
+        let mut v: Vec<&EpisodeRecord> = episodes
+            .iter()
+            .filter(|e| e.model == model && e.condition == condition)
+            .collect();
+        v.sort_by_key(|e| e.episode);
+        v
+    };
+    let mean = |v: &[f64]| {
+        if v.is_empty() {
+            f64::NAN
+        } else {
+            v.iter().sum::<f64>() / v.len() as f64
+        }
+    };
+    let mut cells = Vec::new();
+    for (model, encoder) in &models {
+        for &condition in &opts.conditions {
+            let eps = cell(model, condition);
+            let success = SUCCESS_BUDGETS
+                .iter()
+                .map(|&b| {
+                    (
+                        b,
+                        Rate::new(
+                            eps.iter().filter(|e| e.success_within(b)).count(),
+                            eps.len(),
+                        ),
+                    )
+                })
+                .collect();
+            let to_success: Vec<f64> = eps
+                .iter()
+                .filter_map(|e| e.steps_to_success.map(|s| s as f64))
+                .collect();
+            cells.push(CellSummary {
+                model: model.clone(),
+                encoder: *encoder,
+                condition,
+                success,
+                mean_final_distance: mean(
+                    &eps.iter().map(|e| e.final_distance).collect::<Vec<_>>(),
+                ),
+                mean_return: mean(&eps.iter().map(|e| e.episode_return).collect::<Vec<_>>()),
+                mean_steps_to_success: (!to_success.is_empty()).then(|| mean(&to_success)),
+            });
+        }
+    }
+    let baseline = models
+        .iter()
+        .find(|(_, k)| *k == EncoderKind::None)
+        .map(|(m, _)| m.clone());
+    let mut comparisons = Vec::new();
+    let mut rf = BTreeMap::new();
+    if let Some(base) = &baseline {
+        let rate = |model: &str, c: Condition| {
+            cells
+                .iter()
+                .find(|x| x.model == model && x.condition == c)
+                .map(|x| x.success[&500].rate)
+        };
+        for (model, _) in models.iter().filter(|(_, k)| *k != EncoderKind::None) {
+            for &condition in &opts.conditions {
+                let (b, e) = (cell(base, condition), cell(model, condition));
+                let pairs = b
+                    .iter()
+                    .zip(&e)
+                    .map(|(x, y)| (x.success_within(500), y.success_within(500)));
+                comparisons.push(Comparison {
+                    baseline: base.clone(),
+                    encoder: model.clone(),
+                    condition,
+                    mcnemar: mcnemar(pairs),
+                });
+            }
+            let value = match (
+                rate(model, Condition::Severe),
+                rate(base, Condition::Severe),
+                rate(base, Condition::Healthy),
+            ) {
+                (Some(es), Some(bs), Some(bh)) => recovery_fraction(es, bs, bh),
+                _ => None,
+            };
+            rf.insert(model.clone(), value);
+        }
+    }
+    EvalReport {
+        episodes_per_cell: opts.episodes,
+        max_steps: opts.max_steps,
+        seeds,
+        cells,
+        comparisons,
+        recovery_fraction: rf,
+        wall_time_s,
+        episodes,
+    }
+}
+
+impl EvalReport {
+    /// The paper's Table 2 (success@500 by condition) and Table 3 (time budgets, distances).
+    pub fn markdown(&self) -> String {
+        let mut models: Vec<&str> = Vec::new();
+        for c in &self.cells {
+            if !models.contains(&c.model.as_str()) {
+                models.push(&c.model);
+            }
+        }
+        let conditions: Vec<Condition> = {
+            let mut v = Vec::new();
+            for c in &self.cells {
+                if !v.contains(&c.condition) {
+                    v.push(c.condition);
+                }
+            }
+            v
+        };
+        let get =
+            |m: &str, c: Condition| self.cells.iter().find(|x| x.model == m && x.condition == c);
+        let mut s = format!(
+            "**Success@{} by damage condition** ({} episodes per cell, same seeds for every model; 95 % Wilson intervals)\n\n| model |",
+            self.max_steps, self.episodes_per_cell
+        );
+        for c in &conditions {
+            s += &format!(" {c} |");
+        }
+        s += "\n|---|";
+        s += &"---|".repeat(conditions.len());
+        s += "\n";
+        for m in &models {
+            s += &format!("| {m} |");
+            for &c in &conditions {
+                let cell = get(m, c)
+                    .map(|x| x.success[&500].percent_with_interval())
+                    .unwrap_or_default();
+                s += &format!(" {cell} |");
+            }
+            s += "\n";
+        }
+        s += "\n**Time to goal and distance**\n\n| model | condition | success@250 | success@350 | success@500 | mean final distance (m) | mean return | mean steps to success |\n|---|---|---:|---:|---:|---:|---:|---:|\n";
+        for m in &models {
+            for &c in &conditions {
+                if let Some(x) = get(m, c) {
+                    let pct = |b: usize| {
+                        format!(
+                            "{:.0} % ± {:.0}",
+                            100.0 * x.success[&b].rate,
+                            100.0 * x.success[&b].standard_error
+                        )
+                    };
+                    s += &format!(
+                        "| {m} | {c} | {} | {} | {} | {:.2} | {:.1} | {} |\n",
+                        pct(250),
+                        pct(350),
+                        pct(500),
+                        x.mean_final_distance,
+                        x.mean_return,
+                        x.mean_steps_to_success
+                            .map_or("–".into(), |v| format!("{v:.0}"))
+                    );
+                }
+            }
+        }
+        if !self.comparisons.is_empty() {
+            s += "\n**Encoder vs baseline** (McNemar on paired success@500; b = baseline only, c = encoder only)\n\n| encoder | condition | b | c | χ² | p (χ²) | p (exact) |\n|---|---|---:|---:|---:|---:|---:|\n";
+            for cmp in &self.comparisons {
+                let m = cmp.mcnemar;
+                s += &format!(
+                    "| {} | {} | {} | {} | {:.2} | {:.3} | {:.3} |\n",
+                    cmp.encoder, cmp.condition, m.b, m.c, m.chi2, m.p_chi2, m.p_exact
+                );
+            }
+            for (model, rf) in &self.recovery_fraction {
+                s += &format!(
+                    "\nRecovery fraction of {model}: {}\n",
+                    rf.map_or(
+                        "undefined (the baseline loses nothing under severe damage)".into(),
+                        |v| format!("{v:.2}")
+                    )
+                );
+            }
+        }
+        s
+    }
+}
+
+/// Writes `eval.json` and the figures into `out`, each atomically.
+pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, EvalError> {
+    std::fs::create_dir_all(out).map_err(|e| EvalError::Write {
+        path: out.to_owned(),
+        reason: e.to_string(),
+    })?;
+    let json_path = out.join("eval.json");
+    let json = serde_json::to_vec_pretty(report).map_err(|e| EvalError::Write {
+        path: json_path.clone(),
+        reason: e.to_string(),
+    })?;
+    write_atomic(&json_path, &json)?;
+    let mut models: Vec<&str> = Vec::new();
+    let mut conditions: Vec<Condition> = Vec::new();
+    for c in &report.cells {
+        if !models.contains(&c.model.as_str()) {
+            models.push(&c.model);
+        }
+        if !conditions.contains(&c.condition) {
+            conditions.push(c.condition);
+        }
+    }
+    let names: Vec<&str> = conditions.iter().map(|c| c.name()).collect();
+    let get = |m: &str, c: Condition| {
+        report
+            .cells
+            .iter()
+            .find(|x| x.model == m && x.condition == c)
+    };
+    let success: Vec<ErrorBarSeries> = models
+        .iter()
+        .map(|m| ErrorBarSeries {
+            label: m.to_string(),
+            points: conditions
+                .iter()
+                .filter_map(|&c| get(m, c))
+                .map(|x| {
+                    let r = x.success[&500];
+                    (100.0 * r.rate, 100.0 * r.wilson_low, 100.0 * r.wilson_high)
+                })
+                .collect(),
+        })
+        .collect();
+    let success_path = out.join("success_by_condition.png");
+    plots::error_bars(
+        &success_path,
+        &format!(
+            "Success@{} by damage condition (95 % Wilson)",
+            report.max_steps
+        ),
+        "success (%)",
+        &names,
+        &success,
+        (0.0, 100.0),
+    )?;
+    let distance: Vec<ErrorBarSeries> = models
+        .iter()
+        .map(|m| ErrorBarSeries {
+            label: m.to_string(),
+            points: conditions
+                .iter()
+                .map(|&c| {
+                    let d: Vec<f64> = report
+                        .episodes
+                        .iter()
+                        .filter(|e| e.model == *m && e.condition == c)
+                        .map(|e| e.final_distance)
+                        .collect();
+                    let n = d.len().max(1) as f64;
+                    let mean = d.iter().sum::<f64>() / n;
+                    let se = (d.iter().map(|v| (v - mean).powi(2)).sum::<f64>()
+                        / (n - 1.0).max(1.0)
+                        / n)
+                        .sqrt();
+                    (mean, mean - 1.96 * se, mean + 1.96 * se)
+                })
+                .collect(),
+        })
+        .collect();
+    let max_d = distance
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.2))
+        .fold(1.0f64, f64::max);
+    let distance_path = out.join("final_distance_by_condition.png");
+    plots::error_bars(
+        &distance_path,
+        "Final distance to goal by damage condition (mean ± 95 % CI)",
+        "distance (m)",
+        &names,
+        &distance,
+        (0.0, max_d * 1.1),
+    )?;
+    Ok(vec![json_path, success_path, distance_path])
+}

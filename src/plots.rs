@@ -1,0 +1,297 @@
+//! PNG figures with plotters: grouped points with error bars, lines with bands, scatters.
+//! The font (DejaVu Sans) is bundled, so figures render the same on any machine.
+//! Each figure is drawn to a temporary file and renamed into place.
+
+use plotters::prelude::*;
+use std::path::{Path, PathBuf};
+use std::sync::Once;
+
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    #[error("drawing {path}: {reason}")]
+    Draw { path: PathBuf, reason: String },
+    #[error("writing {path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+static FONT: Once = Once::new();
+
+fn register_font() {
+    FONT.call_once(|| {
+        // The bytes are ours and valid; a failure here would only mean missing text.
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            FontStyle::Normal,
+            include_bytes!("../assets/fonts/DejaVuSans.ttf"),
+        );
+    });
+}
+
+/// Distinct, colour-blind-friendly series colours (Okabe–Ito).
+pub const PALETTE: [RGBColor; 6] = [
+    RGBColor(0, 114, 178),
+    RGBColor(213, 94, 0),
+    RGBColor(0, 158, 115),
+    RGBColor(204, 121, 167),
+    RGBColor(230, 159, 0),
+    RGBColor(86, 180, 233),
+];
+
+/// Renders with `draw` into `path` via a temp file + rename.
+pub fn render(
+    path: &Path,
+    size: (u32, u32),
+    draw: impl FnOnce(
+        &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    ) -> Result<(), Box<dyn std::error::Error>>,
+) -> Result<(), PlotError> {
+    register_font();
+    let file_name = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("figure");
+    let tmp = path.with_file_name(format!(".{file_name}.tmp.png"));
+    let fail = |reason: String| PlotError::Draw {
+        path: path.to_owned(),
+        reason,
+    };
+    {
+        let root = BitMapBackend::new(&tmp, size).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| fail(e.to_string()))?;
+        draw(&root).map_err(|e| fail(e.to_string()))?;
+        root.present().map_err(|e| fail(e.to_string()))?;
+    }
+    std::fs::rename(&tmp, path).map_err(|source| PlotError::Io {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+/// One series of a grouped error-bar chart: a value and interval per category.
+pub struct ErrorBarSeries {
+    pub label: String,
+    /// (value, low, high) per category.
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// Points with error bars, grouped by category, one colour per series.
+pub fn error_bars(
+    path: &Path,
+    title: &str,
+    y_label: &str,
+    categories: &[&str],
+    series: &[ErrorBarSeries],
+    y_range: (f64, f64),
+) -> Result<(), PlotError> {
+    render(path, (900, 560), |root| {
+        let n = series.len().max(1) as f64;
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 26))
+            .margin(16)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(-0.5f64..categories.len() as f64 - 0.5, y_range.0..y_range.1)?;
+        chart
+            .configure_mesh()
+            .y_desc(y_label)
+            .x_labels(categories.len())
+            .x_label_formatter(&|x| {
+                let i = x.round() as i64;
+                if (x - i as f64).abs() < 1e-6 && i >= 0 {
+                    categories
+                        .get(i as usize)
+                        .map(|s| s.to_string())
+                        .unwrap_or_default()
+                } else {
+                    String::new()
+                }
+            })
+            .disable_x_mesh()
+            .label_style(("sans-serif", 16))
+            .draw()?;
+        for (s, ser) in series.iter().enumerate() {
+            let color = PALETTE[s % PALETTE.len()];
+            let offset = (s as f64 - (n - 1.0) / 2.0) * 0.12;
+            chart
+                .draw_series(ser.points.iter().enumerate().map(|(c, &(v, lo, hi))| {
+                    ErrorBar::new_vertical(
+                        c as f64 + offset,
+                        lo,
+                        v,
+                        hi,
+                        color.filled().stroke_width(2),
+                        12,
+                    )
+                }))?
+                .label(ser.label.clone())
+                .legend(move |(x, y)| Circle::new((x + 10, y), 5, color.filled()));
+            chart.draw_series(
+                ser.points
+                    .iter()
+                    .enumerate()
+                    .map(|(c, &(v, _, _))| Circle::new((c as f64 + offset, v), 5, color.filled())),
+            )?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 16))
+            .draw()?;
+        Ok(())
+    })
+}
+
+/// A line with a shaded band (mean ± spread) per series over a shared x axis.
+pub struct BandSeries {
+    pub label: String,
+    pub x: Vec<f64>,
+    pub mean: Vec<f64>,
+    pub low: Vec<f64>,
+    pub high: Vec<f64>,
+}
+
+pub fn bands(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[BandSeries],
+    vertical_marker: Option<f64>,
+) -> Result<(), PlotError> {
+    let finite = |v: &f64| v.is_finite();
+    let xs = series
+        .iter()
+        .flat_map(|s| s.x.iter().copied())
+        .filter(finite);
+    let (x0, x1) = min_max(xs).unwrap_or((0.0, 1.0));
+    let ys = series
+        .iter()
+        .flat_map(|s| s.low.iter().chain(&s.high).copied())
+        .filter(finite);
+    let (y0, y1) = padded(min_max(ys).unwrap_or((0.0, 1.0)));
+    render(path, (900, 520), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 24))
+            .margin(16)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(x0..x1.max(x0 + 1e-9), y0..y1)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .label_style(("sans-serif", 15))
+            .draw()?;
+        for (s, ser) in series.iter().enumerate() {
+            let color = PALETTE[s % PALETTE.len()];
+            let upper: Vec<(f64, f64)> = ser
+                .x
+                .iter()
+                .copied()
+                .zip(ser.high.iter().copied())
+                .collect();
+            let lower: Vec<(f64, f64)> = ser
+                .x
+                .iter()
+                .copied()
+                .zip(ser.low.iter().copied())
+                .rev()
+                .collect();
+            chart.draw_series(std::iter::once(Polygon::new(
+                [upper, lower].concat(),
+                color.mix(0.18),
+            )))?;
+            chart
+                .draw_series(LineSeries::new(
+                    ser.x.iter().copied().zip(ser.mean.iter().copied()),
+                    color.stroke_width(2),
+                ))?
+                .label(ser.label.clone())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+        }
+        if let Some(x) = vertical_marker {
+            chart.draw_series(LineSeries::new([(x, y0), (x, y1)], BLACK.mix(0.6)))?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        Ok(())
+    })
+}
+
+/// A 2-D scatter, one colour per class, with a legend.
+pub fn scatter(
+    path: &Path,
+    title: &str,
+    axes: (&str, &str),
+    classes: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), PlotError> {
+    let all = || classes.iter().flat_map(|(_, p)| p.iter());
+    let (x0, x1) = padded(min_max(all().map(|p| p.0)).unwrap_or((0.0, 1.0)));
+    let (y0, y1) = padded(min_max(all().map(|p| p.1)).unwrap_or((0.0, 1.0)));
+    render(path, (820, 720), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 24))
+            .margin(16)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(x0..x1, y0..y1)?;
+        chart
+            .configure_mesh()
+            .x_desc(axes.0)
+            .y_desc(axes.1)
+            .label_style(("sans-serif", 15))
+            .draw()?;
+        let colors = viridis(classes.len());
+        for ((label, points), color) in classes.iter().zip(colors) {
+            chart
+                .draw_series(
+                    points
+                        .iter()
+                        .map(|&(x, y)| Circle::new((x, y), 3, color.mix(0.6).filled())),
+                )?
+                .label(label.clone())
+                .legend(move |(x, y)| Circle::new((x + 10, y), 5, color.filled()));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        Ok(())
+    })
+}
+
+/// `n` colours from plotters' viridis map, dark to light.
+pub fn viridis(n: usize) -> Vec<RGBColor> {
+    use plotters::style::colors::colormaps::{ColorMap, ViridisRGB};
+    (0..n)
+        .map(|i| {
+            ViridisRGB.get_color(if n > 1 {
+                i as f64 / (n - 1) as f64
+            } else {
+                0.0
+            })
+        })
+        .collect()
+}
+
+fn min_max(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
+    values.fold(None, |acc, v| match acc {
+        None => Some((v, v)),
+        Some((lo, hi)) => Some((lo.min(v), hi.max(v))),
+    })
+}
+
+fn padded((lo, hi): (f64, f64)) -> (f64, f64) {
+    let pad = ((hi - lo) * 0.05).max(1e-6);
+    (lo - pad, hi + pad)
+}
