@@ -10,6 +10,7 @@ pub mod env;
 pub mod eval;
 pub mod plots;
 pub mod policy;
+pub mod probe;
 pub mod rollout;
 pub mod train;
 pub mod window;

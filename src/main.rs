@@ -32,6 +32,8 @@ enum Command {
     Train(TrainArgs),
     /// Evaluate checkpoints under each damage condition (paired seeds, Wilson intervals, McNemar).
     Eval(EvalArgs),
+    /// Linear probes and PCA on an encoder's z; saves probe.json next to the checkpoint.
+    Probe(ProbeArgs),
     /// Measure performance.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -158,6 +160,26 @@ struct EvalArgs {
     out: PathBuf,
 }
 
+#[derive(Args)]
+struct ProbeArgs {
+    /// Encoder checkpoint whose z is probed (probe.json is written into it).
+    #[arg(long, value_name = "DIR")]
+    checkpoint: PathBuf,
+    /// Baseline checkpoint, for the progress-at-onset comparison.
+    #[arg(long, value_name = "DIR")]
+    baseline: Option<PathBuf>,
+    /// Episodes per condition (≈ 6,000 steps in all with the default).
+    #[arg(long, default_value_t = 12)]
+    episodes: usize,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    #[arg(long, default_value_t = 2_000_000_000)]
+    seed: u64,
+    /// Folder for the figures.
+    #[arg(long, value_name = "DIR", default_value = "probe")]
+    out: PathBuf,
+}
+
 #[derive(Subcommand)]
 enum BenchCommand {
     /// Env steps/s with random actions against bare MuJoCo on the same model.
@@ -204,6 +226,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Rollout(args) => rollout_command(args),
         Command::Train(args) => train_command(args),
         Command::Eval(args) => eval_command(args),
+        Command::Probe(args) => probe_command(args),
         Command::Bench(BenchCommand::Env { steps, runs, env }) => {
             if steps == 0 {
                 bail!("--steps must be at least 1");
@@ -383,6 +406,42 @@ fn error_chain(err: &anyhow::Error) -> String {
         }
     }
     text
+}
+
+fn probe_command(args: ProbeArgs) -> Result<()> {
+    use gaitscope::probe;
+    if args.episodes == 0 || args.max_steps == 0 {
+        bail!("--episodes and --max-steps must be at least 1");
+    }
+    let policy = gaitscope::policy::Policy::load(&args.checkpoint, None)?;
+    if !policy.net().encoder.uses_window() {
+        return Err(probe::ProbeError::NoLatent(args.checkpoint).into());
+    }
+    let steps = probe::collect(&policy, args.episodes, args.max_steps, args.seed)?;
+    let baseline = match &args.baseline {
+        Some(dir) => {
+            let base = gaitscope::policy::Policy::load(dir, Some(EncoderKind::None))?;
+            Some(probe::collect(
+                &base,
+                args.episodes,
+                args.max_steps,
+                args.seed,
+            )?)
+        }
+        None => None,
+    };
+    let joint_names: Vec<String> = AntEnv::new(policy.meta.env.clone(), 0)?
+        .actuators()
+        .iter()
+        .map(|a| a.joint.clone())
+        .collect();
+    let file = probe::fit_probes(&steps, &joint_names, policy.meta.steps_done, args.seed)?;
+    println!("{}", file.markdown());
+    eprintln!("wrote {}", probe::save(&file, &args.checkpoint)?.display());
+    for path in probe::figures(&file, &steps, baseline.as_deref(), &args.out)? {
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
 }
 
 fn is_broken_pipe(err: &anyhow::Error) -> bool {
