@@ -191,6 +191,13 @@ enum BenchCommand {
         #[command(flatten)]
         env: EnvArgs,
     },
+    /// Evaluation throughput: 100 episodes per condition (300 in all) of one checkpoint.
+    Eval {
+        #[arg(long, value_name = "DIR")]
+        checkpoint: PathBuf,
+        #[arg(long, default_value_t = 100)]
+        episodes: usize,
+    },
     /// Training env steps/s per encoder (one update per step) against the updates alone.
     Train {
         /// Learning steps to time per encoder (after a 1,000-step random warm-up).
@@ -233,6 +240,31 @@ fn run(cli: Cli) -> Result<()> {
             }
             let report = bench_env(&env.load()?, steps, runs)?;
             println!("{report}");
+            Ok(())
+        }
+        Command::Bench(BenchCommand::Eval {
+            checkpoint,
+            episodes,
+        }) => {
+            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let opts = gaitscope::eval::EvalOptions {
+                checkpoints: vec![checkpoint],
+                episodes,
+                seed_base: gaitscope::eval::EVAL_SEED_BASE,
+                conditions: Condition::ALL.to_vec(),
+                max_steps: 500,
+                threads,
+            };
+            let started = std::time::Instant::now();
+            let report = gaitscope::eval::evaluate(&opts)?;
+            let secs = started.elapsed().as_secs_f64();
+            let steps: usize = report.episodes.iter().map(|e| e.steps).sum();
+            println!(
+                "{} episodes ({steps} env steps) in {secs:.1} s on {threads} threads: {:.1} episodes/s, {:.0} env steps/s",
+                report.episodes.len(),
+                report.episodes.len() as f64 / secs,
+                steps as f64 / secs
+            );
             Ok(())
         }
         Command::Bench(BenchCommand::Train { steps, encoders }) => {

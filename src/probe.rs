@@ -223,7 +223,8 @@ impl LinearProbe {
                     reason: "no samples".into(),
                 });
             }
-            1 => (vec![vec![0.0; x.ncols()]], vec![f64::INFINITY]),
+            // One class seen: a constant probe (its weights are never used).
+            1 => (vec![vec![0.0; x.ncols()]], vec![0.0]),
             2 => {
                 let targets: Array1<usize> =
                     y.iter().map(|&c| usize::from(c == classes[1])).collect();
