@@ -1,7 +1,7 @@
 # The two commands of the README are `make run` and `make test`; both set up first.
 CARGO ?= cargo
 
-.PHONY: setup run test bench
+.PHONY: setup run test bench viewer
 setup:
 	@./scripts/setup.sh
 
@@ -15,3 +15,7 @@ test: setup
 
 bench: setup
 	$(CARGO) run --release -- bench env
+
+# The stock Rerun 0.36.3 viewer binary (from PyPI's rerun-sdk wheel), for `rerun FILE.rrd`.
+viewer:
+	@./scripts/setup.sh --viewer

@@ -32,3 +32,31 @@ PY
 fi
 ln -sfn "libmujoco.so.$MUJOCO_VERSION" "$lib_dir/libmujoco.so"
 echo "setup: libmujoco ready in $lib_dir"
+
+# The stock Rerun viewer (only with `--viewer`): the `rerun` executable from PyPI's
+# rerun-sdk==0.36.3 wheel, unpacked into .deps/rerun/. Not needed to record or test.
+RERUN_VERSION=0.36.3
+if [ "${1:-}" = "--viewer" ]; then
+  viewer_dir="$deps/rerun"
+  viewer="$viewer_dir/rerun"
+  if [ ! -x "$viewer" ]; then
+    echo "setup: fetching the Rerun $RERUN_VERSION viewer from PyPI (rerun-sdk==$RERUN_VERSION wheel)"
+    wheels="$deps/wheels"
+    mkdir -p "$wheels" "$viewer_dir"
+    python3 -m pip download --quiet --no-deps --only-binary=:all: \
+      --platform manylinux_2_28_x86_64 --python-version 3.11 \
+      "rerun-sdk==$RERUN_VERSION" -d "$wheels"
+    wheel=$(ls "$wheels"/rerun_sdk-"$RERUN_VERSION"-*.whl | head -n 1)
+    python3 - "$wheel" "$viewer" <<'PY'
+import os, shutil, sys, zipfile
+wheel, dest = sys.argv[1], sys.argv[2]
+with zipfile.ZipFile(wheel) as zf, zf.open("rerun_sdk/rerun_cli/rerun") as src, open(dest + ".tmp", "wb") as out:
+    shutil.copyfileobj(src, out)
+os.chmod(dest + ".tmp", 0o755)
+os.replace(dest + ".tmp", dest)
+PY
+    rm -f "$wheel"
+  fi
+  "$viewer" analytics disable >/dev/null 2>&1 || true
+  echo "setup: Rerun viewer ready: $viewer"
+fi

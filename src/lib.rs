@@ -12,6 +12,7 @@ pub mod plots;
 pub mod policy;
 pub mod probe;
 pub mod rollout;
+pub mod telemetry;
 pub mod train;
 pub mod window;
 

@@ -30,6 +30,8 @@ enum Command {
     Rollout(RolloutArgs),
     /// Train a SAC policy (optionally with a context encoder) on the damaged Ant.
     Train(TrainArgs),
+    /// Record episodes headlessly to a .rrd file for the Rerun viewer.
+    Record(RecordArgs),
     /// Evaluate checkpoints under each damage condition (paired seeds, Wilson intervals, McNemar).
     Eval(EvalArgs),
     /// Linear probes and PCA on an encoder's z; saves probe.json next to the checkpoint.
@@ -138,6 +140,33 @@ struct TrainArgs {
 }
 
 #[derive(Args)]
+struct RecordArgs {
+    /// Checkpoint to record; without one, a built-in policy acts (see --policy).
+    #[arg(long, value_name = "DIR")]
+    checkpoint: Option<PathBuf>,
+    /// A second checkpoint, side by side under identical damage and seeds.
+    #[arg(long, value_name = "DIR", requires = "checkpoint")]
+    compare: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
+    policy: BuiltinPolicy,
+    /// Damage condition (default: random per episode).
+    #[arg(long, value_name = "healthy|mild|severe")]
+    condition: Option<Condition>,
+    #[arg(long, default_value_t = 1)]
+    episodes: usize,
+    /// Episode k uses seed S + k (for every model).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// The .rrd file to write.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
+#[derive(Args)]
 struct EvalArgs {
     /// Checkpoint folders (give a baseline and encoders to get paired tests and the recovery fraction).
     #[arg(long = "checkpoint", value_name = "DIR", required = true, num_args = 1..)]
@@ -233,6 +262,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Rollout(args) => rollout_command(args),
         Command::Train(args) => train_command(args),
         Command::Eval(args) => eval_command(args),
+        Command::Record(args) => record_command(args),
         Command::Probe(args) => probe_command(args),
         Command::Bench(BenchCommand::Env { steps, runs, env }) => {
             if steps == 0 {
@@ -388,6 +418,62 @@ fn train_command(args: TrainArgs) -> Result<()> {
         summary.wall_time_s,
         summary.steps_per_s,
         out.display()
+    );
+    Ok(())
+}
+
+fn record_command(args: RecordArgs) -> Result<()> {
+    use gaitscope::telemetry::{self, Actor, RecordOptions, Sink};
+    if args.episodes == 0 || args.max_steps == 0 {
+        bail!("--episodes and --max-steps must be at least 1");
+    }
+    if args.out.extension().and_then(|e| e.to_str()) != Some("rrd") {
+        bail!(
+            "--out {} should end in .rrd (the file the Rerun viewer opens)",
+            args.out.display()
+        );
+    }
+    let mut config = args.env.load()?;
+    config.env.max_episode_steps = args.max_steps;
+    if let Some(c) = args.condition {
+        config.damage.condition = ConditionChoice::Fixed(c);
+    }
+    let mut actors = Vec::new();
+    for dir in args.checkpoint.iter().chain(&args.compare) {
+        let policy = gaitscope::policy::Policy::load(dir, None)?;
+        actors.push(Actor::Checkpoint {
+            dir: dir.clone(),
+            policy: Box::new(policy),
+        });
+    }
+    if actors.is_empty() {
+        actors.push(Actor::Builtin(args.policy));
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
+        .context("installing the Ctrl-C handler")?;
+    let opts = RecordOptions {
+        actors,
+        config,
+        episodes: args.episodes,
+        seed: args.seed,
+        sink: Sink::File(args.out.clone()),
+    };
+    let summary = telemetry::record(opts, &stop)?;
+    let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
+    eprintln!(
+        "{}: {} episodes, {} steps, {:.1} MB → {} (open with `rerun {}`)",
+        if summary.interrupted {
+            "interrupted, recording flushed"
+        } else {
+            "done"
+        },
+        summary.episodes,
+        summary.steps,
+        size as f64 / 1e6,
+        args.out.display(),
+        args.out.display()
     );
     Ok(())
 }

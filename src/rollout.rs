@@ -34,6 +34,12 @@ impl BuiltinPolicy {
     }
 }
 
+/// The RNG a built-in policy acts from in the episode seeded with `seed`: a stream distinct from
+/// the env's, so the policy does not shift the env's draws.
+pub fn policy_rng(seed: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed ^ 0x9E37_79B9_7F4A_7C15)
+}
+
 /// One episode in a line (or one JSON object).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct EpisodeSummary {
@@ -60,8 +66,7 @@ pub fn run_builtin_episode(
     seed: u64,
 ) -> Result<EpisodeSummary, EnvError> {
     env.reset_with_seed(seed);
-    // A distinct stream from the env's, so the policy does not shift the env's draws.
-    let mut policy_rng = ChaCha8Rng::seed_from_u64(seed ^ 0x9E37_79B9_7F4A_7C15);
+    let mut policy_rng = policy_rng(seed);
     let mut episode_return = 0.0;
     let last = loop {
         let out = env.step(&policy.act(&mut policy_rng))?;

@@ -1,0 +1,744 @@
+//! Rerun telemetry: every env step of a damaged Ant, drawn from MuJoCo's own state.
+//!
+//! Timelines: `step` (env steps since the recording started), `sim_time` (seconds) and
+//! `episode`. No wall-clock timeline, so a recording is a pure function of its inputs.
+//!
+//! Entity layout, under a root per model (`ant` alone, or one root per model with `--compare`):
+//!
+//! | path | archetype | when |
+//! |---|---|---|
+//! | `{root}/world/geoms/{geom}` | Capsules3D / Ellipsoids3D / Boxes3D (floor) | static shape; Transform3D and (legs) colour per step |
+//! | `{root}/world/goal`, `{root}/world/goal/radius` | Ellipsoids3D, LineStrips3D | static |
+//! | `{root}/world/trail` | LineStrips3D (torso path, every 5th step) | every 5 steps |
+//! | `{root}/joints/{joint}/fatigue`, `…/scale` | Scalars | per step |
+//! | `{root}/joints/threshold` | Scalars | per step |
+//! | `{root}/events` | TextLog (triggers, overrides) | on events |
+//! | `{root}/actions/{commanded,applied}/{joint}` | Scalars | per step |
+//! | `{root}/reward/{native,progress,success,total}` | Scalars | per step |
+//! | `{root}/goal/{distance,progress_rate}` | Scalars | per step |
+//! | `{root}/latent/z` | Scalars (32 series) | per step (encoder policies) |
+//! | `{root}/latent/pca` | Points2D (current point) | per step, with `probe.json` |
+//! | `{root}/latent/pca_trail` | Points2D (episode so far, every 5th step) | every 5 steps |
+//! | `{root}/probe/{joint}/predicted`, `…/truth` | Scalars | per step, with `probe.json` |
+//! | `{root}/episode` | TextDocument (checkpoint, encoder, condition, seed, outcome) | episode start and end |
+
+use rerun::blueprint::{
+    Blueprint, Horizontal, Spatial2DView, Spatial3DView, TextLogView, TimeSeriesView, Vertical,
+};
+use rerun::{RecordingStream, RecordingStreamBuilder};
+use std::path::{Path, PathBuf};
+
+use crate::damage::{DamageEventKind, JointState, N_ACTUATORS};
+use crate::env::{AntEnv, StepOutcome};
+use crate::probe::ProbeFile;
+
+pub const APP_ID: &str = "gaitscope";
+/// Log the trail (torso path, PCA path) every this many steps: bounded bytes per step.
+pub const TRAIL_EVERY: usize = 5;
+
+#[derive(Debug, thiserror::Error)]
+pub enum TelemetryError {
+    #[error("rerun: {0}")]
+    Rerun(#[from] rerun::RecordingStreamError),
+    #[error("cannot write recording {path}: {reason}")]
+    File { path: PathBuf, reason: String },
+    #[error("flushing the recording: {0}")]
+    Flush(String),
+}
+
+/// Where a recording goes.
+#[derive(Debug, Clone)]
+pub enum Sink {
+    File(PathBuf),
+    Memory,
+}
+
+/// Opens a recording with our default blueprint and no wall-clock timeline.
+/// `recording_id` makes the recording reproducible (same id for the same inputs).
+pub fn open(
+    sink: &Sink,
+    recording_id: &str,
+    roots: &[String],
+    joints: &[String],
+) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
+    let builder = RecordingStreamBuilder::new(APP_ID)
+        .recording_id(recording_id.to_string())
+        .with_default_blueprint(default_blueprint(roots, joints));
+    let (rec, storage) = match sink {
+        Sink::File(path) => {
+            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).map_err(|e| TelemetryError::File {
+                    path: path.clone(),
+                    reason: e.to_string(),
+                })?;
+            }
+            let rec = builder.save(path).map_err(|e| TelemetryError::File {
+                path: path.clone(),
+                reason: e.to_string(),
+            })?;
+            (rec, None)
+        }
+        Sink::Memory => {
+            let (rec, storage) = builder.memory()?;
+            (rec, Some(storage))
+        }
+    };
+    rec.set_log_time_enabled(false);
+    rec.set_log_tick_enabled(false);
+    Ok((rec, storage))
+}
+
+/// What someone opening the file sees first: the Ant large, fatigue, z / PCA, progress, events.
+pub fn default_blueprint(roots: &[String], joints: &[String]) -> Blueprint {
+    let per_joint = |leaf: &'static str| {
+        roots
+            .iter()
+            .flat_map(move |r| {
+                joints
+                    .iter()
+                    .map(move |j| format!("/{r}/joints/{j}/{leaf}"))
+            })
+            .collect::<Vec<_>>()
+    };
+    let world = Spatial3DView::new("Ant")
+        .with_origin("/")
+        .with_contents(roots.iter().map(|r| format!("/{r}/world/**")));
+    let mut fatigue_series = per_joint("fatigue");
+    fatigue_series.extend(roots.iter().map(|r| format!("/{r}/joints/threshold")));
+    let fatigue =
+        TimeSeriesView::new("Fatigue per joint (τ = threshold)").with_contents(fatigue_series);
+    let scale = TimeSeriesView::new("Torque scale").with_contents(per_joint("scale"));
+    let latent =
+        TimeSeriesView::new("z").with_contents(roots.iter().map(|r| format!("/{r}/latent/z")));
+    let pca = Spatial2DView::new("z in PCA basis").with_contents(
+        roots
+            .iter()
+            .flat_map(|r| [format!("/{r}/latent/pca"), format!("/{r}/latent/pca_trail")]),
+    );
+    let progress = TimeSeriesView::new("Goal distance")
+        .with_contents(roots.iter().map(|r| format!("/{r}/goal/distance")));
+    let probe = TimeSeriesView::new("Probe: P(damaged) vs truth")
+        .with_contents(roots.iter().map(|r| format!("/{r}/probe/**")));
+    let events = TextLogView::new("Damage events")
+        .with_contents(roots.iter().map(|r| format!("/{r}/events")));
+    Blueprint::new(
+        Horizontal::new([
+            Vertical::new([world.into(), events.into()])
+                .with_row_shares([3.0, 1.0])
+                .into(),
+            Vertical::new([fatigue.into(), scale.into(), progress.into()]).into(),
+            Vertical::new([latent.into(), pca.into(), probe.into()]).into(),
+        ])
+        .with_column_shares([2.0, 1.2, 1.2]),
+    )
+    .with_auto_views(false)
+}
+
+#[derive(Debug, Clone)]
+enum Shape {
+    Sphere(f32),
+    /// Radius and half-length along the geom's z axis.
+    Capsule(f32, f32),
+    Plane([f32; 2]),
+    Other,
+}
+
+#[derive(Debug, Clone)]
+struct Geom {
+    id: usize,
+    entity: String,
+    shape: Shape,
+    /// The actuator whose joint moves this geom's body (leg segments), for damage colours.
+    actuator: Option<usize>,
+    /// Attached to the world body: never moves.
+    fixed: bool,
+    rgba: [f32; 4],
+}
+
+/// Logs one model's rollouts under `root`.
+pub struct AntLogger {
+    rec: RecordingStream,
+    root: String,
+    geoms: Vec<Geom>,
+    joint_names: Vec<String>,
+    probe: Option<ProbeFile>,
+    trail: Vec<[f32; 3]>,
+    pca_trail: Vec<[f32; 2]>,
+    logged_events: usize,
+    static_logged: bool,
+    dt: f64,
+    threshold: f64,
+}
+
+/// Colour of a leg segment: green → amber as fatigue nears τ, red once triggered, purple manual.
+pub fn damage_color(state: JointState, fatigue: f64, threshold: f64) -> [u8; 4] {
+    match state {
+        JointState::Triggered => [220, 40, 40, 255],
+        JointState::Manual => [150, 70, 200, 255],
+        JointState::Healthy => {
+            let f = (fatigue / threshold).clamp(0.0, 1.0) as f32;
+            let lerp = |a: f32, b: f32| (a + (b - a) * f) as u8;
+            [lerp(60.0, 240.0), lerp(170.0, 170.0), lerp(90.0, 30.0), 255]
+        }
+    }
+}
+
+impl AntLogger {
+    pub fn new(rec: RecordingStream, root: &str, env: &AntEnv, probe: Option<ProbeFile>) -> Self {
+        let model = env.physics().model();
+        let body_actuator = |body: usize| env.actuators().iter().position(|a| a.body_id == body);
+        let geoms = (0..model.ngeom() as usize)
+            .map(|g| {
+                let name = model
+                    .id_to_name(mujoco_rs::prelude::MjtObjBase::mjOBJ_GEOM, g)
+                    .filter(|n| !n.is_empty())
+                    .map_or_else(|| format!("geom{g}"), str::to_string);
+                let size = model.geom_size()[g];
+                let body = model.geom_bodyid()[g] as usize;
+                let shape = match model.geom_type()[g] as i32 {
+                    0 => Shape::Plane([size[0] as f32, size[1] as f32]),
+                    2 => Shape::Sphere(size[0] as f32),
+                    3 => Shape::Capsule(size[0] as f32, size[1] as f32),
+                    _ => Shape::Other,
+                };
+                Geom {
+                    id: g,
+                    entity: format!("{root}/world/geoms/{name}"),
+                    shape,
+                    actuator: body_actuator(body),
+                    fixed: body == 0,
+                    rgba: model.geom_rgba()[g],
+                }
+            })
+            .collect();
+        Self {
+            rec,
+            root: root.to_string(),
+            geoms,
+            joint_names: env.actuators().iter().map(|a| a.joint.clone()).collect(),
+            probe,
+            trail: Vec::new(),
+            pca_trail: Vec::new(),
+            logged_events: 0,
+            static_logged: false,
+            dt: env.dt(),
+            threshold: env.config().damage.threshold,
+        }
+    }
+
+    pub fn recording(&self) -> &RecordingStream {
+        &self.rec
+    }
+
+    fn log_static(&mut self, env: &AntEnv) -> Result<(), TelemetryError> {
+        for g in &self.geoms {
+            let [r, gg, b, a] = g.rgba.map(|v| (v * 255.0) as u8);
+            let color = rerun::Color::from_unmultiplied_rgba(r, gg, b, a);
+            match g.shape {
+                Shape::Sphere(radius) => self.rec.log_static(
+                    g.entity.as_str(),
+                    &rerun::Ellipsoids3D::from_radii([radius])
+                        .with_colors([color])
+                        .with_fill_mode(rerun::FillMode::Solid),
+                )?,
+                Shape::Capsule(radius, half) => self.rec.log_static(
+                    g.entity.as_str(),
+                    &rerun::Capsules3D::from_lengths_and_radii([2.0 * half], [radius])
+                        .with_translations([[0.0, 0.0, -half]])
+                        .with_colors([color]),
+                )?,
+                Shape::Plane(half) => {
+                    // The model's floor is 80 m wide; draw the patch around start and goal (within
+                    // its extent) so the default camera frames the Ant, not the horizon.
+                    let goal = env.config().env.goal;
+                    let center = [goal[0] as f32 / 2.0, goal[1] as f32 / 2.0];
+                    let reach = (center[0].abs().max(center[1].abs()) + 3.0)
+                        .min(half[0].max(half[1]).max(1.0));
+                    self.rec.log_static(
+                        g.entity.as_str(),
+                        &rerun::Boxes3D::from_centers_and_half_sizes(
+                            [[center[0], center[1], -0.005]],
+                            [[reach, reach, 0.005]],
+                        )
+                        .with_colors([rerun::Color::from_rgb(205, 215, 205)])
+                        .with_fill_mode(rerun::FillMode::Solid),
+                    )?
+                }
+                Shape::Other => {}
+            }
+            if g.fixed {
+                self.rec
+                    .log_static(g.entity.as_str(), &geom_transform(env, g.id))?;
+            }
+        }
+        let goal = env.config().env.goal;
+        let radius = env.config().env.success_radius;
+        let goal_path = format!("{}/world/goal", self.root);
+        self.rec.log_static(
+            goal_path.as_str(),
+            &rerun::Ellipsoids3D::from_centers_and_radii(
+                [[goal[0] as f32, goal[1] as f32, 0.1]],
+                [0.1],
+            )
+            .with_colors([rerun::Color::from_rgb(250, 200, 0)])
+            .with_fill_mode(rerun::FillMode::Solid),
+        )?;
+        let circle: Vec<[f32; 3]> = (0..=64)
+            .map(|k| {
+                let a = k as f64 / 64.0 * std::f64::consts::TAU;
+                [
+                    (goal[0] + radius * a.cos()) as f32,
+                    (goal[1] + radius * a.sin()) as f32,
+                    0.01,
+                ]
+            })
+            .collect();
+        self.rec.log_static(
+            format!("{goal_path}/radius").as_str(),
+            &rerun::LineStrips3D::new([circle]).with_colors([rerun::Color::from_rgb(250, 200, 0)]),
+        )?;
+        self.static_logged = true;
+        Ok(())
+    }
+
+    /// Sets the timelines for global step `step` of episode `episode`.
+    pub fn set_time(&self, step: u64, episode: u64) {
+        self.rec.set_time_sequence("step", step as i64);
+        self.rec
+            .set_duration_secs("sim_time", step as f64 * self.dt);
+        self.rec.set_time_sequence("episode", episode as i64);
+    }
+
+    /// Episode metadata at reset (and again with the outcome at the end).
+    pub fn log_episode(
+        &mut self,
+        meta: &EpisodeMeta,
+        env: &AntEnv,
+        outcome: Option<&StepOutcome>,
+    ) -> Result<(), TelemetryError> {
+        if !self.static_logged {
+            self.log_static(env)?;
+        }
+        if outcome.is_none() {
+            self.trail.clear();
+            self.pca_trail.clear();
+            self.logged_events = 0;
+        }
+        let mut text = format!(
+            "**checkpoint** {}  \n**encoder** {}  \n**condition** {}  \n**seed** {}",
+            meta.checkpoint,
+            meta.encoder,
+            env.condition(),
+            meta.seed
+        );
+        if let Some(out) = outcome {
+            text += &format!(
+                "  \n**success** {}  \n**steps** {}  \n**final distance** {:.2} m  \n**triggered joints** {}",
+                out.success,
+                out.step + 1,
+                out.distance,
+                env.damage().n_triggered()
+            );
+        }
+        self.rec.log(
+            format!("{}/episode", self.root).as_str(),
+            &rerun::TextDocument::from_markdown(text),
+        )?;
+        Ok(())
+    }
+
+    /// Everything about the state after one env step (timelines must be set first).
+    pub fn log_step(
+        &mut self,
+        env: &AntEnv,
+        out: &StepOutcome,
+        z: Option<&[f32]>,
+    ) -> Result<(), TelemetryError> {
+        if !self.static_logged {
+            self.log_static(env)?;
+        }
+        let root = &self.root;
+        let damage = env.damage();
+        // The Ant: transforms from MuJoCo's geom poses, leg colours from the damage state.
+        for g in self.geoms.iter().filter(|g| !g.fixed) {
+            self.rec
+                .log(g.entity.as_str(), &geom_transform(env, g.id))?;
+            if let (Some(i), Shape::Capsule(..)) = (g.actuator, &g.shape) {
+                let [r, gg, b, a] =
+                    damage_color(damage.joint_state(i), damage.fatigue()[i], self.threshold);
+                self.rec.log(
+                    g.entity.as_str(),
+                    &rerun::Capsules3D::update_fields()
+                        .with_colors([rerun::Color::from_unmultiplied_rgba(r, gg, b, a)]),
+                )?;
+            }
+        }
+        let torso = env.physics().xpos()[env.torso_body()];
+        self.trail
+            .push([torso[0] as f32, torso[1] as f32, torso[2] as f32]);
+        if out.step % TRAIL_EVERY == 0 || out.done() {
+            let path: Vec<[f32; 3]> = self
+                .trail
+                .iter()
+                .step_by(TRAIL_EVERY)
+                .copied()
+                .chain(self.trail.last().copied())
+                .collect();
+            self.rec.log(
+                format!("{root}/world/trail").as_str(),
+                &rerun::LineStrips3D::new([path])
+                    .with_colors([rerun::Color::from_rgb(90, 120, 220)]),
+            )?;
+        }
+        // Joints.
+        for (i, name) in self.joint_names.iter().enumerate() {
+            self.rec.log(
+                format!("{root}/joints/{name}/fatigue").as_str(),
+                &rerun::Scalars::single(damage.fatigue()[i]),
+            )?;
+            self.rec.log(
+                format!("{root}/joints/{name}/scale").as_str(),
+                &rerun::Scalars::single(damage.scale()[i]),
+            )?;
+            self.rec.log(
+                format!("{root}/actions/commanded/{name}").as_str(),
+                &rerun::Scalars::single(out.commanded_action[i]),
+            )?;
+            self.rec.log(
+                format!("{root}/actions/applied/{name}").as_str(),
+                &rerun::Scalars::single(out.applied_action[i]),
+            )?;
+        }
+        self.rec.log(
+            format!("{root}/joints/threshold").as_str(),
+            &rerun::Scalars::single(self.threshold),
+        )?;
+        // Events since the last step, as text and as the state they changed.
+        for e in &damage.events()[self.logged_events..] {
+            let (level, text) = match &e.kind {
+                DamageEventKind::Trigger => (
+                    rerun::TextLogLevel::WARN,
+                    format!(
+                        "step {}: {} triggered at fatigue {:.1}; scale → {}",
+                        e.step, e.joint, e.fatigue, e.scale
+                    ),
+                ),
+                DamageEventKind::Override { change } => (
+                    rerun::TextLogLevel::INFO,
+                    format!(
+                        "step {}: {} override {:?}; scale → {}",
+                        e.step, e.joint, change, e.scale
+                    ),
+                ),
+            };
+            self.rec.log(
+                format!("{root}/events").as_str(),
+                &rerun::TextLog::new(text).with_level(level),
+            )?;
+        }
+        self.logged_events = damage.events().len();
+        // Reward and goal.
+        let r = out.reward;
+        for (name, v) in [
+            ("native", r.native),
+            ("progress", r.progress),
+            ("success", r.success),
+            ("total", r.total),
+        ] {
+            self.rec.log(
+                format!("{root}/reward/{name}").as_str(),
+                &rerun::Scalars::single(v),
+            )?;
+        }
+        self.rec.log(
+            format!("{root}/goal/distance").as_str(),
+            &rerun::Scalars::single(out.distance),
+        )?;
+        self.rec.log(
+            format!("{root}/goal/progress_rate").as_str(),
+            &rerun::Scalars::single(r.progress / self.dt),
+        )?;
+        // The latent, its PCA projection and the probes' readout.
+        if let Some(z) = z {
+            self.rec.log(
+                format!("{root}/latent/z").as_str(),
+                &rerun::Scalars::new(z.iter().map(|&v| v as f64)),
+            )?;
+            if let Some(probe) = &self.probe {
+                let z64: Vec<f64> = z.iter().map(|&v| v as f64).collect();
+                let p = probe.pca.project(&z64);
+                let point = [p[0] as f32, p.get(1).copied().unwrap_or(0.0) as f32];
+                // Coloured by the number of triggered joints, as in the probe's PCA figure.
+                let c = crate::plots::viridis(N_ACTUATORS + 1)[damage.n_triggered()];
+                self.rec.log(
+                    format!("{root}/latent/pca").as_str(),
+                    &rerun::Points2D::new([point])
+                        .with_radii([0.12])
+                        .with_colors([rerun::Color::from_rgb(c.0, c.1, c.2)]),
+                )?;
+                self.pca_trail.push(point);
+                if out.step % TRAIL_EVERY == 0 {
+                    let trail: Vec<[f32; 2]> = self
+                        .pca_trail
+                        .iter()
+                        .step_by(TRAIL_EVERY)
+                        .copied()
+                        .collect();
+                    let faded = rerun::Color::from_unmultiplied_rgba(c.0, c.1, c.2, 120);
+                    self.rec.log(
+                        format!("{root}/latent/pca_trail").as_str(),
+                        &rerun::Points2D::new(trail)
+                            .with_radii([0.04])
+                            .with_colors([faded]),
+                    )?;
+                }
+                for (i, name) in self.joint_names.iter().enumerate() {
+                    let predicted = probe.joint_probes[i]
+                        .probabilities(&z64)
+                        .last()
+                        .copied()
+                        .unwrap_or(0.0);
+                    let truth = damage.triggered()[i] && damage.scale()[i] < 1.0;
+                    self.rec.log(
+                        format!("{root}/probe/{name}/predicted").as_str(),
+                        &rerun::Scalars::single(predicted),
+                    )?;
+                    self.rec.log(
+                        format!("{root}/probe/{name}/truth").as_str(),
+                        &rerun::Scalars::single(f64::from(u8::from(truth))),
+                    )?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Blocks until everything logged so far reached the sink.
+    pub fn flush(&self) -> Result<(), TelemetryError> {
+        self.rec
+            .flush_blocking()
+            .map_err(|e| TelemetryError::Flush(e.to_string()))
+    }
+}
+
+/// Checkpoint, encoder and seed of an episode, for the metadata document.
+#[derive(Debug, Clone)]
+pub struct EpisodeMeta {
+    pub checkpoint: String,
+    pub encoder: String,
+    pub seed: u64,
+}
+
+/// World pose of a geom as a Rerun transform (MuJoCo's xmat is row-major; Rerun's Mat3x3 from
+/// `[[f32; 3]; 3]` takes columns).
+fn geom_transform(env: &AntEnv, geom: usize) -> rerun::Transform3D {
+    let p = env.physics().geom_xpos()[geom];
+    let m = env.physics().geom_xmat()[geom];
+    let columns: [[f32; 3]; 3] =
+        std::array::from_fn(|c| [m[c] as f32, m[3 + c] as f32, m[6 + c] as f32]);
+    rerun::Transform3D::from_translation_mat3x3(
+        [p[0] as f32, p[1] as f32, p[2] as f32],
+        rerun::datatypes::Mat3x3::from(columns),
+    )
+}
+
+/// Default path for a recording of `name`.
+pub fn recording_path(dir: &Path, name: &str) -> PathBuf {
+    dir.join(format!("{name}.rrd"))
+}
+
+/// Who acts in a recorded episode.
+pub enum Actor {
+    Checkpoint {
+        dir: PathBuf,
+        policy: Box<crate::policy::Policy>,
+    },
+    Builtin(crate::rollout::BuiltinPolicy),
+}
+
+impl Actor {
+    fn label(&self) -> String {
+        match self {
+            Actor::Checkpoint { dir, .. } => crate::eval::model_label(dir),
+            Actor::Builtin(p) => format!("{p:?}").to_lowercase(),
+        }
+    }
+    fn encoder(&self) -> String {
+        match self {
+            Actor::Checkpoint { policy, .. } => policy.net().encoder.to_string(),
+            Actor::Builtin(_) => "none (built-in policy)".into(),
+        }
+    }
+}
+
+/// What `gaitscope record` does.
+pub struct RecordOptions {
+    pub actors: Vec<Actor>,
+    pub config: crate::config::GaitConfig,
+    pub episodes: usize,
+    pub seed: u64,
+    pub sink: Sink,
+}
+
+/// Outcome of a recording.
+pub struct RecordSummary {
+    pub steps: u64,
+    pub episodes: usize,
+    pub interrupted: bool,
+    pub storage: Option<rerun::sink::MemorySinkStorage>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    #[error(transparent)]
+    Telemetry(#[from] TelemetryError),
+    #[error(transparent)]
+    Env(#[from] crate::env::EnvError),
+    #[error(transparent)]
+    Probe(#[from] crate::probe::ProbeError),
+    #[error("policy inference failed: {0}")]
+    Policy(#[from] candle_core::Error),
+}
+
+/// Runs `episodes` episodes per actor, all actors in lockstep on the same seeds (episode k uses
+/// seed + k), logging every step. Stops early, with everything flushed, when `stop` is set.
+pub fn record(
+    opts: RecordOptions,
+    stop: &std::sync::atomic::AtomicBool,
+) -> Result<RecordSummary, RecordError> {
+    let mut roots: Vec<String> = Vec::new();
+    for actor in &opts.actors {
+        let mut root = if opts.actors.len() == 1 {
+            "ant".to_string()
+        } else {
+            actor.label()
+        };
+        while roots.contains(&root) {
+            root.push('_');
+        }
+        roots.push(root);
+    }
+    let recording_id = format!(
+        "gaitscope-{}-seed{}-{}",
+        roots.join("-"),
+        opts.seed,
+        opts.episodes
+    );
+    let joints: Vec<String> = AntEnv::new(opts.config.clone(), 0)?
+        .actuators()
+        .iter()
+        .map(|a| a.joint.clone())
+        .collect();
+    let (rec, storage) = open(&opts.sink, &recording_id, &roots, &joints)?;
+    let mut lanes = Vec::new();
+    for (actor, root) in opts.actors.iter().zip(&roots) {
+        let mut config = opts.config.clone();
+        if let Actor::Checkpoint { policy, .. } = actor {
+            // The model's own task settings, with the caller's condition and step limit.
+            let trained = &policy.meta.env;
+            config = crate::config::GaitConfig {
+                damage: crate::config::DamageConfig {
+                    condition: config.damage.condition,
+                    ..trained.damage.clone()
+                },
+                env: crate::config::EnvConfig {
+                    max_episode_steps: config.env.max_episode_steps,
+                    ..trained.env.clone()
+                },
+                context: trained.context.clone(),
+            };
+        }
+        let env = AntEnv::new(config, opts.seed)?;
+        let probe = match actor {
+            Actor::Checkpoint { dir, .. } if dir.join(crate::probe::PROBE_FILE).exists() => {
+                Some(crate::probe::ProbeFile::load(dir)?)
+            }
+            _ => None,
+        };
+        let logger = AntLogger::new(rec.clone(), root, &env, probe);
+        let len = match actor {
+            Actor::Checkpoint { policy, .. } => policy.net().context_len,
+            Actor::Builtin(_) => 1,
+        };
+        lanes.push((env, logger, crate::window::ContextWindow::new(len)));
+    }
+    let mut global_step = 0u64;
+    let mut episodes_done = 0;
+    let mut interrupted = false;
+    'episodes: for k in 0..opts.episodes {
+        let seed = opts.seed.wrapping_add(k as u64);
+        let mut obs = Vec::new();
+        let mut rngs = Vec::new();
+        for ((env, logger, window), actor) in lanes.iter_mut().zip(&opts.actors) {
+            obs.push(env.reset_with_seed(seed));
+            window.clear();
+            logger.set_time(global_step, k as u64);
+            logger.log_episode(
+                &EpisodeMeta {
+                    checkpoint: actor.label(),
+                    encoder: actor.encoder(),
+                    seed,
+                },
+                env,
+                None,
+            )?;
+            rngs.push(crate::rollout::policy_rng(seed));
+        }
+        let mut done = vec![false; lanes.len()];
+        while !done.iter().all(|&d| d) {
+            if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                interrupted = true;
+                break 'episodes;
+            }
+            global_step += 1;
+            for (i, ((env, logger, window), actor)) in
+                lanes.iter_mut().zip(&opts.actors).enumerate()
+            {
+                if done[i] {
+                    continue;
+                }
+                let (action, z) = match actor {
+                    Actor::Checkpoint { policy, .. } => {
+                        let o: Vec<f32> = obs[i].iter().map(|&v| v as f32).collect();
+                        let w = policy
+                            .net()
+                            .encoder
+                            .uses_window()
+                            .then(|| window.as_slice());
+                        let d = policy
+                            .act_batch(&o, w, crate::policy::ActionMode::Deterministic, None)?
+                            .remove(0);
+                        (d.action, d.z)
+                    }
+                    Actor::Builtin(p) => (p.act(&mut rngs[i]).to_vec(), None),
+                };
+                let out = env.step(&action)?;
+                window.push(&obs[i], &action);
+                logger.set_time(global_step, k as u64);
+                logger.log_step(env, &out, z.as_deref())?;
+                obs[i] = out.obs;
+                if out.done() {
+                    done[i] = true;
+                    logger.log_episode(
+                        &EpisodeMeta {
+                            checkpoint: actor.label(),
+                            encoder: actor.encoder(),
+                            seed,
+                        },
+                        env,
+                        Some(&out),
+                    )?;
+                }
+            }
+        }
+        episodes_done += 1;
+    }
+    rec.flush_blocking()
+        .map_err(|e| TelemetryError::Flush(e.to_string()))?;
+    Ok(RecordSummary {
+        steps: global_step,
+        episodes: episodes_done,
+        interrupted,
+        storage,
+    })
+}

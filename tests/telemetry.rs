@@ -1,0 +1,248 @@
+//! Recordings decoded with Rerun's own decoder and checked against the env, step by step.
+
+use gaitscope::damage::DamageEventKind;
+use gaitscope::env::AntEnv;
+use gaitscope::rollout::{BuiltinPolicy, policy_rng};
+use gaitscope::telemetry::{Actor, RecordOptions, Sink, record};
+use gaitscope::{Condition, ConditionChoice, GaitConfig};
+use re_chunk::Chunk;
+use std::collections::BTreeMap;
+use std::sync::atomic::AtomicBool;
+
+const SEED: u64 = 11;
+const STEPS: usize = 80;
+
+fn config() -> GaitConfig {
+    let mut c = GaitConfig::default();
+    c.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+    c.env.max_episode_steps = STEPS;
+    c
+}
+
+/// What the env reported at each step of the recorded episode, replayed independently.
+struct Truth {
+    fatigue: Vec<[f64; 8]>,
+    torso_geom_xpos: Vec<[f64; 3]>,
+    trigger_steps: Vec<(usize, String)>,
+    joint_names: Vec<String>,
+}
+
+fn truth() -> Truth {
+    let mut env = AntEnv::new(config(), SEED).unwrap();
+    env.reset_with_seed(SEED);
+    let mut rng = policy_rng(SEED);
+    let (mut fatigue, mut xpos) = (Vec::new(), Vec::new());
+    loop {
+        let out = env.step(&BuiltinPolicy::Random.act(&mut rng)).unwrap();
+        fatigue.push(*env.damage().fatigue());
+        // Geom 1 is the torso sphere (geom 0 is the floor).
+        xpos.push(env.physics().geom_xpos()[1]);
+        if out.done() {
+            break;
+        }
+    }
+    let trigger_steps = env
+        .damage()
+        .events()
+        .iter()
+        .filter(|e| e.kind == DamageEventKind::Trigger)
+        .map(|e| (e.step, e.joint.clone()))
+        .collect();
+    Truth {
+        fatigue,
+        torso_geom_xpos: xpos,
+        trigger_steps,
+        joint_names: env.actuators().iter().map(|a| a.joint.clone()).collect(),
+    }
+}
+
+fn options(sink: Sink) -> RecordOptions {
+    RecordOptions {
+        actors: vec![Actor::Builtin(BuiltinPolicy::Random)],
+        config: config(),
+        episodes: 1,
+        seed: SEED,
+        sink,
+    }
+}
+
+/// The recording's chunks (the blueprint travels in its own store, with random view ids).
+fn chunks(msgs: impl IntoIterator<Item = rerun::log::LogMsg>) -> Vec<Chunk> {
+    msgs.into_iter()
+        .filter_map(|m| match m {
+            rerun::log::LogMsg::ArrowMsg(store, arrow)
+                if store.kind() == rerun::StoreKind::Recording =>
+            {
+                Some(Chunk::from_arrow_msg(&arrow).unwrap())
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+/// (step → values) of one component on one entity, across chunks.
+fn by_step<T: Copy>(
+    chunks: &[Chunk],
+    entity: &str,
+    component: re_chunk::ComponentIdentifier,
+    read: impl Fn(&Chunk) -> Vec<T>,
+) -> BTreeMap<i64, T> {
+    let mut out = BTreeMap::new();
+    for c in chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == entity)
+    {
+        let Some(steps) = c.timelines().get(&"step".into()) else {
+            continue;
+        };
+        let values = read(c);
+        if values.is_empty() {
+            continue;
+        }
+        for (t, v) in steps.times_raw().iter().zip(values) {
+            out.insert(*t, v);
+        }
+    }
+    out
+}
+
+fn check(chunks: &[Chunk], truth: &Truth) {
+    let entities: std::collections::BTreeSet<String> =
+        chunks.iter().map(|c| c.entity_path().to_string()).collect();
+    for e in [
+        "/ant/world/geoms/torso_geom",
+        "/ant/world/goal",
+        "/ant/joints/ankle_1/fatigue",
+        "/ant/events",
+        "/ant/goal/distance",
+        "/ant/episode",
+    ] {
+        assert!(entities.contains(e), "missing {e}; have {entities:?}");
+    }
+    let scalars = rerun::Scalars::descriptor_scalars().component;
+    for (i, joint) in truth.joint_names.iter().enumerate() {
+        let series = by_step(
+            chunks,
+            &format!("/ant/joints/{joint}/fatigue"),
+            scalars,
+            |c| c.iter_slices::<f64>(scalars).map(|s| s[0]).collect(),
+        );
+        assert_eq!(
+            series.len(),
+            truth.fatigue.len(),
+            "one row per env step for {joint}"
+        );
+        for (t, f) in truth.fatigue.iter().enumerate() {
+            // Env step t is logged at global step t + 1.
+            assert_eq!(series[&(t as i64 + 1)], f[i], "{joint} fatigue at step {t}");
+        }
+    }
+    let translation = rerun::Transform3D::descriptor_translation().component;
+    let torso = by_step(chunks, "/ant/world/geoms/torso_geom", translation, |c| {
+        c.iter_slices::<[f32; 3]>(translation)
+            .filter_map(|s| s.first().copied())
+            .collect()
+    });
+    for (t, x) in truth.torso_geom_xpos.iter().enumerate() {
+        let got = torso[&(t as i64 + 1)];
+        assert_eq!(
+            got,
+            [x[0] as f32, x[1] as f32, x[2] as f32],
+            "torso transform at step {t}"
+        );
+    }
+    let text = rerun::TextLog::descriptor_text().component;
+    let mut events: Vec<(i64, String)> = Vec::new();
+    for c in chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == "/ant/events")
+    {
+        let steps = c
+            .timelines()
+            .get(&"step".into())
+            .expect("events are on the step timeline");
+        for (t, s) in steps.times_raw().iter().zip(c.iter_slices::<String>(text)) {
+            events.extend(s.iter().map(|v| (*t, v.to_string())));
+        }
+    }
+    assert!(
+        !truth.trigger_steps.is_empty(),
+        "80 random steps trigger some joint"
+    );
+    assert_eq!(events.len(), truth.trigger_steps.len(), "{events:?}");
+    for (step, joint) in &truth.trigger_steps {
+        let at = *step as i64 + 1;
+        assert!(
+            events.iter().any(|(t, e)| *t == at && e.starts_with(&format!("step {step}: {joint} triggered"))),
+            "trigger of {joint} at step {step} not logged at global step {at}: {events:?}"
+        );
+    }
+}
+
+#[test]
+fn file_recording_decodes_to_what_the_env_reported() {
+    let truth = truth();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("episode.rrd");
+    let summary = record(options(Sink::File(path.clone())), &AtomicBool::new(false)).unwrap();
+    assert_eq!(summary.steps as usize, truth.fatigue.len());
+    let file = std::io::BufReader::new(std::fs::File::open(&path).unwrap());
+    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
+        .map(|m| m.unwrap())
+        .collect();
+    check(&chunks(msgs), &truth);
+}
+
+#[test]
+fn memory_recording_matches_and_is_deterministic() {
+    let truth = truth();
+    let a = record(options(Sink::Memory), &AtomicBool::new(false)).unwrap();
+    let chunks_a = chunks(a.storage.unwrap().take());
+    check(&chunks_a, &truth);
+    let b = record(options(Sink::Memory), &AtomicBool::new(false)).unwrap();
+    let chunks_b = chunks(b.storage.unwrap().take());
+    let rows = |cs: &[Chunk]| {
+        cs.iter()
+            .map(|c| (c.entity_path().to_string(), c.num_rows()))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(
+        rows(&chunks_a),
+        rows(&chunks_b),
+        "same inputs, same recording"
+    );
+}
+
+#[test]
+fn a_stop_request_still_leaves_a_readable_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("stopped.rrd");
+    let summary = record(options(Sink::File(path.clone())), &AtomicBool::new(true)).unwrap();
+    assert!(summary.interrupted);
+    let file = std::io::BufReader::new(std::fs::File::open(&path).unwrap());
+    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file).collect();
+    assert!(
+        msgs.iter().all(Result::is_ok),
+        "the file decodes to the end"
+    );
+}
+
+/// Run by `.ci/run` on a file the `gaitscope record` binary just exported headlessly:
+/// `GAITSCOPE_RRD=FILE cargo test --release --test telemetry -- --ignored`.
+#[test]
+#[ignore = "needs GAITSCOPE_RRD, set by .ci/run"]
+fn exported_file_decodes() {
+    let path = std::env::var("GAITSCOPE_RRD").expect("GAITSCOPE_RRD names the exported .rrd");
+    let file = std::io::BufReader::new(std::fs::File::open(&path).unwrap());
+    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
+        .map(|m| m.unwrap())
+        .collect();
+    let chunks = chunks(msgs);
+    let steps: usize = chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == "/ant/goal/distance")
+        .map(Chunk::num_rows)
+        .sum();
+    assert!(steps >= 1, "the exported recording has steps");
+    eprintln!("{path}: {} chunks, {steps} steps", chunks.len());
+}
