@@ -300,3 +300,77 @@ pub fn bench_train(
     }
     Ok(rows)
 }
+
+/// `gaitscope bench record`: the cost of telemetry per env step.
+#[derive(Debug, Clone, Serialize)]
+pub struct RecordBenchReport {
+    pub steps: u64,
+    pub plain_steps_per_s: f64,
+    pub recorded_steps_per_s: f64,
+    pub bytes_per_step: f64,
+    /// Resident memory before and after the recorded run (MB).
+    pub rss_before_mb: f64,
+    pub rss_after_mb: f64,
+}
+
+impl RecordBenchReport {
+    /// Share of a recorded step's time spent on telemetry.
+    pub fn telemetry_share(&self) -> f64 {
+        1.0 - self.recorded_steps_per_s / self.plain_steps_per_s
+    }
+}
+
+fn rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmRSS:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// Full-length episodes of the zero policy (the Ant stands, episodes run to the limit), first
+/// without telemetry, then recorded to a file in `scratch`.
+pub fn bench_record(
+    episodes: usize,
+    scratch: &std::path::Path,
+) -> Result<RecordBenchReport, crate::telemetry::RecordError> {
+    use crate::rollout::{BuiltinPolicy, run_builtin_episode};
+    use crate::telemetry::{Actor, RecordOptions, Sink, record};
+    let mut config = GaitConfig::default();
+    config.env.max_episode_steps = 500;
+    let mut env = AntEnv::new(config.clone(), 0)?;
+    let start = Instant::now();
+    let mut plain_steps = 0u64;
+    for k in 0..episodes {
+        plain_steps +=
+            run_builtin_episode(&mut env, BuiltinPolicy::Zero, k, k as u64)?.steps as u64;
+    }
+    let plain_steps_per_s = plain_steps as f64 / start.elapsed().as_secs_f64();
+    let path = scratch.join("bench.rrd");
+    let rss_before_mb = rss_mb();
+    let start = Instant::now();
+    let summary = record(
+        RecordOptions {
+            actors: vec![Actor::Builtin(BuiltinPolicy::Zero)],
+            config,
+            episodes,
+            seed: 0,
+            sink: Sink::File(path.clone()),
+        },
+        &std::sync::atomic::AtomicBool::new(false),
+    )?;
+    let recorded_steps_per_s = summary.steps as f64 / start.elapsed().as_secs_f64();
+    let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+    let _ = std::fs::remove_file(&path);
+    Ok(RecordBenchReport {
+        steps: summary.steps,
+        plain_steps_per_s,
+        recorded_steps_per_s,
+        bytes_per_step: bytes as f64 / summary.steps.max(1) as f64,
+        rss_before_mb,
+        rss_after_mb: rss_mb(),
+    })
+}

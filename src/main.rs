@@ -220,6 +220,12 @@ enum BenchCommand {
         #[command(flatten)]
         env: EnvArgs,
     },
+    /// Telemetry cost: steps/s recorded to .rrd vs the same rollout without, bytes per step, memory.
+    Record {
+        /// Full-length (500-step) episodes to run each way.
+        #[arg(long, default_value_t = 20)]
+        episodes: usize,
+    },
     /// Evaluation throughput: 100 episodes per condition (300 in all) of one checkpoint.
     Eval {
         #[arg(long, value_name = "DIR")]
@@ -270,6 +276,27 @@ fn run(cli: Cli) -> Result<()> {
             }
             let report = bench_env(&env.load()?, steps, runs)?;
             println!("{report}");
+            Ok(())
+        }
+        Command::Bench(BenchCommand::Record { episodes }) => {
+            if episodes == 0 {
+                bail!("--episodes must be at least 1");
+            }
+            let scratch =
+                std::env::temp_dir().join(format!("gaitscope-bench-{}", std::process::id()));
+            std::fs::create_dir_all(&scratch)?;
+            let r = gaitscope::bench::bench_record(episodes, &scratch)?;
+            let _ = std::fs::remove_dir_all(&scratch);
+            println!(
+                "{} steps: plain {:.0} steps/s, recorded {:.0} steps/s (telemetry {:.0} % of a recorded step), {:.0} bytes/step, RSS {:.0} → {:.0} MB",
+                r.steps,
+                r.plain_steps_per_s,
+                r.recorded_steps_per_s,
+                100.0 * r.telemetry_share(),
+                r.bytes_per_step,
+                r.rss_before_mb,
+                r.rss_after_mb
+            );
             Ok(())
         }
         Command::Bench(BenchCommand::Eval {

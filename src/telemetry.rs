@@ -7,19 +7,19 @@
 //!
 //! | path | archetype | when |
 //! |---|---|---|
-//! | `{root}/world/geoms/{geom}` | Capsules3D / Ellipsoids3D / Boxes3D (floor) | static shape; Transform3D and (legs) colour per step |
-//! | `{root}/world/goal`, `{root}/world/goal/radius` | Ellipsoids3D, LineStrips3D | static |
+//! | `{root}/world/legs` | Capsules3D, one instance per leg capsule (labels = geom names) | shapes static; poses and damage colours per step |
+//! | `{root}/world/torso` | Ellipsoids3D | radius static; pose per step |
+//! | `{root}/world/floor`, `{root}/world/goal`, `{root}/world/goal/radius` | Boxes3D, Ellipsoids3D, LineStrips3D | static |
 //! | `{root}/world/trail` | LineStrips3D (torso path, every 5th step) | every 5 steps |
-//! | `{root}/joints/{joint}/fatigue`, `…/scale` | Scalars | per step |
-//! | `{root}/joints/threshold` | Scalars | per step |
+//! | `{root}/joints/fatigue`, `{root}/joints/scale` | Scalars × 8 (series named by joint, actuator order) | per step |
+//! | `{root}/joints/threshold` | Scalars | episode start and end |
 //! | `{root}/events` | TextLog (triggers, overrides) | on events |
-//! | `{root}/actions/{commanded,applied}/{joint}` | Scalars | per step |
-//! | `{root}/reward/{native,progress,success,total}` | Scalars | per step |
-//! | `{root}/goal/{distance,progress_rate}` | Scalars | per step |
-//! | `{root}/latent/z` | Scalars (32 series) | per step (encoder policies) |
-//! | `{root}/latent/pca` | Points2D (current point) | per step, with `probe.json` |
-//! | `{root}/latent/pca_trail` | Points2D (episode so far, every 5th step) | every 5 steps |
-//! | `{root}/probe/{joint}/predicted`, `…/truth` | Scalars | per step, with `probe.json` |
+//! | `{root}/actions/commanded`, `{root}/actions/applied` | Scalars × 8 | per step |
+//! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
+//! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
+//! | `{root}/latent/z` | Scalars × 32 | per step (encoder policies) |
+//! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point; episode every 5th step) | with `probe.json` |
+//! | `{root}/probe/predicted`, `{root}/probe/truth` | Scalars × 8: P(joint damaged) from z, and the truth | with `probe.json` |
 //! | `{root}/episode` | TextDocument (checkpoint, encoder, condition, seed, outcome) | episode start and end |
 
 use rerun::blueprint::{
@@ -59,11 +59,10 @@ pub fn open(
     sink: &Sink,
     recording_id: &str,
     roots: &[String],
-    joints: &[String],
 ) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
     let builder = RecordingStreamBuilder::new(APP_ID)
         .recording_id(recording_id.to_string())
-        .with_default_blueprint(default_blueprint(roots, joints));
+        .with_default_blueprint(default_blueprint(roots));
     let (rec, storage) = match sink {
         Sink::File(path) => {
             if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -89,38 +88,26 @@ pub fn open(
 }
 
 /// What someone opening the file sees first: the Ant large, fatigue, z / PCA, progress, events.
-pub fn default_blueprint(roots: &[String], joints: &[String]) -> Blueprint {
-    let per_joint = |leaf: &'static str| {
+pub fn default_blueprint(roots: &[String]) -> Blueprint {
+    let paths = |leaves: &[&str]| -> Vec<String> {
         roots
             .iter()
-            .flat_map(move |r| {
-                joints
-                    .iter()
-                    .map(move |j| format!("/{r}/joints/{j}/{leaf}"))
-            })
-            .collect::<Vec<_>>()
+            .flat_map(|r| leaves.iter().map(move |l| format!("/{r}/{l}")))
+            .collect()
     };
     let world = Spatial3DView::new("Ant")
         .with_origin("/")
-        .with_contents(roots.iter().map(|r| format!("/{r}/world/**")));
-    let mut fatigue_series = per_joint("fatigue");
-    fatigue_series.extend(roots.iter().map(|r| format!("/{r}/joints/threshold")));
-    let fatigue =
-        TimeSeriesView::new("Fatigue per joint (τ = threshold)").with_contents(fatigue_series);
-    let scale = TimeSeriesView::new("Torque scale").with_contents(per_joint("scale"));
-    let latent =
-        TimeSeriesView::new("z").with_contents(roots.iter().map(|r| format!("/{r}/latent/z")));
-    let pca = Spatial2DView::new("z in PCA basis").with_contents(
-        roots
-            .iter()
-            .flat_map(|r| [format!("/{r}/latent/pca"), format!("/{r}/latent/pca_trail")]),
-    );
-    let progress = TimeSeriesView::new("Goal distance")
-        .with_contents(roots.iter().map(|r| format!("/{r}/goal/distance")));
-    let probe = TimeSeriesView::new("Probe: P(damaged) vs truth")
-        .with_contents(roots.iter().map(|r| format!("/{r}/probe/**")));
-    let events = TextLogView::new("Damage events")
-        .with_contents(roots.iter().map(|r| format!("/{r}/events")));
+        .with_contents(paths(&["world/**"]));
+    let fatigue = TimeSeriesView::new("Fatigue per joint (τ = threshold)")
+        .with_contents(paths(&["joints/fatigue", "joints/threshold"]));
+    let scale = TimeSeriesView::new("Torque scale").with_contents(paths(&["joints/scale"]));
+    let latent = TimeSeriesView::new("z").with_contents(paths(&["latent/z"]));
+    let pca = Spatial2DView::new("z in PCA basis")
+        .with_contents(paths(&["latent/pca", "latent/pca_trail"]));
+    let progress = TimeSeriesView::new("Goal distance").with_contents(paths(&["goal/distance"]));
+    let probe =
+        TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"]));
+    let events = TextLogView::new("Damage events").with_contents(paths(&["events"]));
     Blueprint::new(
         Horizontal::new([
             Vertical::new([world.into(), events.into()])
@@ -134,32 +121,26 @@ pub fn default_blueprint(roots: &[String], joints: &[String]) -> Blueprint {
     .with_auto_views(false)
 }
 
+/// A capsule of the model: MuJoCo's capsule is centred on its frame, axis along local z.
 #[derive(Debug, Clone)]
-enum Shape {
-    Sphere(f32),
-    /// Radius and half-length along the geom's z axis.
-    Capsule(f32, f32),
-    Plane([f32; 2]),
-    Other,
-}
-
-#[derive(Debug, Clone)]
-struct Geom {
+struct CapsuleGeom {
     id: usize,
-    entity: String,
-    shape: Shape,
+    name: String,
+    radius: f32,
+    half_length: f32,
     /// The actuator whose joint moves this geom's body (leg segments), for damage colours.
     actuator: Option<usize>,
-    /// Attached to the world body: never moves.
-    fixed: bool,
-    rgba: [f32; 4],
+    rgba: [u8; 4],
 }
 
-/// Logs one model's rollouts under `root`.
+/// Logs one model's rollouts under `root`, a handful of batched calls per step.
 pub struct AntLogger {
     rec: RecordingStream,
     root: String,
-    geoms: Vec<Geom>,
+    capsules: Vec<CapsuleGeom>,
+    /// (geom id, radius) of the torso sphere.
+    torso: Option<(usize, f32)>,
+    floor_half: Option<[f32; 2]>,
     joint_names: Vec<String>,
     probe: Option<ProbeFile>,
     trail: Vec<[f32; 3]>,
@@ -170,51 +151,56 @@ pub struct AntLogger {
     threshold: f64,
 }
 
-/// Colour of a leg segment: green → amber as fatigue nears τ, red once triggered, purple manual.
+/// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
+/// purple when set by hand.
 pub fn damage_color(state: JointState, fatigue: f64, threshold: f64) -> [u8; 4] {
     match state {
         JointState::Triggered => [220, 40, 40, 255],
         JointState::Manual => [150, 70, 200, 255],
         JointState::Healthy => {
-            let f = (fatigue / threshold).clamp(0.0, 1.0) as f32;
+            let f = ((fatigue / threshold).clamp(0.0, 1.0) * 10.0).floor() as f32 / 10.0;
             let lerp = |a: f32, b: f32| (a + (b - a) * f) as u8;
-            [lerp(60.0, 240.0), lerp(170.0, 170.0), lerp(90.0, 30.0), 255]
+            [lerp(60.0, 240.0), 170, lerp(90.0, 30.0), 255]
         }
     }
+}
+
+fn color([r, g, b, a]: [u8; 4]) -> rerun::Color {
+    rerun::Color::from_unmultiplied_rgba(r, g, b, a)
 }
 
 impl AntLogger {
     pub fn new(rec: RecordingStream, root: &str, env: &AntEnv, probe: Option<ProbeFile>) -> Self {
         let model = env.physics().model();
-        let body_actuator = |body: usize| env.actuators().iter().position(|a| a.body_id == body);
-        let geoms = (0..model.ngeom() as usize)
-            .map(|g| {
-                let name = model
-                    .id_to_name(mujoco_rs::prelude::MjtObjBase::mjOBJ_GEOM, g)
-                    .filter(|n| !n.is_empty())
-                    .map_or_else(|| format!("geom{g}"), str::to_string);
-                let size = model.geom_size()[g];
-                let body = model.geom_bodyid()[g] as usize;
-                let shape = match model.geom_type()[g] as i32 {
-                    0 => Shape::Plane([size[0] as f32, size[1] as f32]),
-                    2 => Shape::Sphere(size[0] as f32),
-                    3 => Shape::Capsule(size[0] as f32, size[1] as f32),
-                    _ => Shape::Other,
-                };
-                Geom {
+        let mut capsules = Vec::new();
+        let (mut torso, mut floor_half) = (None, None);
+        for g in 0..model.ngeom() as usize {
+            let name = model
+                .id_to_name(mujoco_rs::prelude::MjtObjBase::mjOBJ_GEOM, g)
+                .filter(|n| !n.is_empty())
+                .map_or_else(|| format!("geom{g}"), str::to_string);
+            let size = model.geom_size()[g];
+            let body = model.geom_bodyid()[g] as usize;
+            match model.geom_type()[g] as i32 {
+                0 => floor_half = Some([size[0] as f32, size[1] as f32]),
+                2 if body == env.torso_body() => torso = Some((g, size[0] as f32)),
+                3 => capsules.push(CapsuleGeom {
                     id: g,
-                    entity: format!("{root}/world/geoms/{name}"),
-                    shape,
-                    actuator: body_actuator(body),
-                    fixed: body == 0,
-                    rgba: model.geom_rgba()[g],
-                }
-            })
-            .collect();
+                    name,
+                    radius: size[0] as f32,
+                    half_length: size[1] as f32,
+                    actuator: env.actuators().iter().position(|a| a.body_id == body),
+                    rgba: model.geom_rgba()[g].map(|v| (v * 255.0) as u8),
+                }),
+                _ => {}
+            }
+        }
         Self {
             rec,
             root: root.to_string(),
-            geoms,
+            capsules,
+            torso,
+            floor_half,
             joint_names: env.actuators().iter().map(|a| a.joint.clone()).collect(),
             probe,
             trail: Vec::new(),
@@ -230,57 +216,58 @@ impl AntLogger {
         &self.rec
     }
 
+    fn path(&self, leaf: &str) -> String {
+        format!("{}/{leaf}", self.root)
+    }
+
     fn log_static(&mut self, env: &AntEnv) -> Result<(), TelemetryError> {
-        for g in &self.geoms {
-            let [r, gg, b, a] = g.rgba.map(|v| (v * 255.0) as u8);
-            let color = rerun::Color::from_unmultiplied_rgba(r, gg, b, a);
-            match g.shape {
-                Shape::Sphere(radius) => self.rec.log_static(
-                    g.entity.as_str(),
-                    &rerun::Ellipsoids3D::from_radii([radius])
-                        .with_colors([color])
-                        .with_fill_mode(rerun::FillMode::Solid),
-                )?,
-                Shape::Capsule(radius, half) => self.rec.log_static(
-                    g.entity.as_str(),
-                    &rerun::Capsules3D::from_lengths_and_radii([2.0 * half], [radius])
-                        .with_translations([[0.0, 0.0, -half]])
-                        .with_colors([color]),
-                )?,
-                Shape::Plane(half) => {
-                    // The model's floor is 80 m wide; draw the patch around start and goal (within
-                    // its extent) so the default camera frames the Ant, not the horizon.
-                    let goal = env.config().env.goal;
-                    let center = [goal[0] as f32 / 2.0, goal[1] as f32 / 2.0];
-                    let reach = (center[0].abs().max(center[1].abs()) + 3.0)
-                        .min(half[0].max(half[1]).max(1.0));
-                    self.rec.log_static(
-                        g.entity.as_str(),
-                        &rerun::Boxes3D::from_centers_and_half_sizes(
-                            [[center[0], center[1], -0.005]],
-                            [[reach, reach, 0.005]],
-                        )
-                        .with_colors([rerun::Color::from_rgb(205, 215, 205)])
-                        .with_fill_mode(rerun::FillMode::Solid),
-                    )?
-                }
-                Shape::Other => {}
-            }
-            if g.fixed {
-                self.rec
-                    .log_static(g.entity.as_str(), &geom_transform(env, g.id))?;
-            }
+        let rec = &self.rec;
+        // Leg capsules: shape and names once; poses and colours per step.
+        rec.log_static(
+            self.path("world/legs").as_str(),
+            &rerun::Capsules3D::from_lengths_and_radii(
+                self.capsules.iter().map(|c| 2.0 * c.half_length),
+                self.capsules.iter().map(|c| c.radius),
+            )
+            .with_labels(self.capsules.iter().map(|c| c.name.clone()))
+            .with_show_labels(false)
+            .with_colors(self.capsules.iter().map(|c| color(c.rgba))),
+        )?;
+        if let Some((_, radius)) = self.torso {
+            rec.log_static(
+                self.path("world/torso").as_str(),
+                &rerun::Ellipsoids3D::from_radii([radius])
+                    .with_colors([rerun::Color::from_rgb(204, 153, 102)])
+                    .with_fill_mode(rerun::FillMode::Solid),
+            )?;
+        }
+        if let Some(half) = self.floor_half {
+            // The model's floor is 80 m wide; draw the patch around start and goal (within its
+            // extent) so the default camera frames the Ant, not the horizon.
+            let goal = env.config().env.goal;
+            let center = [goal[0] as f32 / 2.0, goal[1] as f32 / 2.0];
+            let reach =
+                (center[0].abs().max(center[1].abs()) + 3.0).min(half[0].max(half[1]).max(1.0));
+            rec.log_static(
+                self.path("world/floor").as_str(),
+                &rerun::Boxes3D::from_centers_and_half_sizes(
+                    [[center[0], center[1], -0.005]],
+                    [[reach, reach, 0.005]],
+                )
+                .with_colors([rerun::Color::from_rgb(205, 215, 205)])
+                .with_fill_mode(rerun::FillMode::Solid),
+            )?;
         }
         let goal = env.config().env.goal;
         let radius = env.config().env.success_radius;
-        let goal_path = format!("{}/world/goal", self.root);
-        self.rec.log_static(
-            goal_path.as_str(),
+        let gold = rerun::Color::from_rgb(250, 200, 0);
+        rec.log_static(
+            self.path("world/goal").as_str(),
             &rerun::Ellipsoids3D::from_centers_and_radii(
                 [[goal[0] as f32, goal[1] as f32, 0.1]],
                 [0.1],
             )
-            .with_colors([rerun::Color::from_rgb(250, 200, 0)])
+            .with_colors([gold])
             .with_fill_mode(rerun::FillMode::Solid),
         )?;
         let circle: Vec<[f32; 3]> = (0..=64)
@@ -293,9 +280,33 @@ impl AntLogger {
                 ]
             })
             .collect();
-        self.rec.log_static(
-            format!("{goal_path}/radius").as_str(),
-            &rerun::LineStrips3D::new([circle]).with_colors([rerun::Color::from_rgb(250, 200, 0)]),
+        rec.log_static(
+            self.path("world/goal/radius").as_str(),
+            &rerun::LineStrips3D::new([circle]).with_colors([gold]),
+        )?;
+        // Series names for the batched per-joint scalars.
+        let names = || self.joint_names.iter().cloned();
+        let probed = self.probe.is_some();
+        let leaves = [
+            "joints/fatigue",
+            "joints/scale",
+            "actions/commanded",
+            "actions/applied",
+            "probe/predicted",
+            "probe/truth",
+        ];
+        for leaf in leaves
+            .into_iter()
+            .filter(|l| probed || !l.starts_with("probe/"))
+        {
+            rec.log_static(
+                self.path(leaf).as_str(),
+                &rerun::SeriesLines::new().with_names(names()),
+            )?;
+        }
+        rec.log_static(
+            self.path("reward").as_str(),
+            &rerun::SeriesLines::new().with_names(["native", "progress", "success", "total"]),
         )?;
         self.static_logged = true;
         Ok(())
@@ -324,6 +335,11 @@ impl AntLogger {
             self.pca_trail.clear();
             self.logged_events = 0;
         }
+        // τ at the episode's start and end: a flat line across the fatigue plot.
+        self.rec.log(
+            self.path("joints/threshold").as_str(),
+            &rerun::Scalars::single(self.threshold),
+        )?;
         let mut text = format!(
             "**checkpoint** {}  \n**encoder** {}  \n**condition** {}  \n**seed** {}",
             meta.checkpoint,
@@ -341,7 +357,7 @@ impl AntLogger {
             );
         }
         self.rec.log(
-            format!("{}/episode", self.root).as_str(),
+            self.path("episode").as_str(),
             &rerun::TextDocument::from_markdown(text),
         )?;
         Ok(())
@@ -357,26 +373,47 @@ impl AntLogger {
         if !self.static_logged {
             self.log_static(env)?;
         }
-        let root = &self.root;
         let damage = env.damage();
-        // The Ant: transforms from MuJoCo's geom poses, leg colours from the damage state.
-        for g in self.geoms.iter().filter(|g| !g.fixed) {
-            self.rec
-                .log(g.entity.as_str(), &geom_transform(env, g.id))?;
-            if let (Some(i), Shape::Capsule(..)) = (g.actuator, &g.shape) {
-                let [r, gg, b, a] =
-                    damage_color(damage.joint_state(i), damage.fatigue()[i], self.threshold);
-                self.rec.log(
-                    g.entity.as_str(),
-                    &rerun::Capsules3D::update_fields()
-                        .with_colors([rerun::Color::from_unmultiplied_rgba(r, gg, b, a)]),
-                )?;
-            }
+        let physics = env.physics();
+        // The Ant: poses from MuJoCo's geom frames (Rerun's capsule starts at its origin and runs
+        // along +z, MuJoCo's is centred), leg colours from the damage state.
+        let mut translations = Vec::with_capacity(self.capsules.len());
+        let mut rotations = Vec::with_capacity(self.capsules.len());
+        let mut colors = Vec::with_capacity(self.capsules.len());
+        for c in &self.capsules {
+            let (p, q) = geom_pose(env, c.id);
+            let axis = q * rerun::external::glam::Vec3::Z;
+            translations.push(p - axis * c.half_length);
+            rotations.push(rerun::Quaternion::from_xyzw(q.to_array()));
+            colors.push(match c.actuator {
+                Some(i) => color(damage_color(
+                    damage.joint_state(i),
+                    damage.fatigue()[i],
+                    self.threshold,
+                )),
+                None => color(c.rgba),
+            });
         }
-        let torso = env.physics().xpos()[env.torso_body()];
+        self.rec.log(
+            self.path("world/legs").as_str(),
+            &rerun::Capsules3D::update_fields()
+                .with_translations(translations.iter().map(|t| t.to_array()))
+                .with_quaternions(rotations)
+                .with_colors(colors),
+        )?;
+        if let Some((g, _)) = self.torso {
+            let (p, q) = geom_pose(env, g);
+            self.rec.log(
+                self.path("world/torso").as_str(),
+                &rerun::Ellipsoids3D::update_fields()
+                    .with_centers([p.to_array()])
+                    .with_quaternions([rerun::Quaternion::from_xyzw(q.to_array())]),
+            )?;
+        }
+        let torso = physics.xpos()[env.torso_body()];
         self.trail
             .push([torso[0] as f32, torso[1] as f32, torso[2] as f32]);
-        if out.step % TRAIL_EVERY == 0 || out.done() {
+        if out.step.is_multiple_of(TRAIL_EVERY) || out.done() {
             let path: Vec<[f32; 3]> = self
                 .trail
                 .iter()
@@ -385,35 +422,28 @@ impl AntLogger {
                 .chain(self.trail.last().copied())
                 .collect();
             self.rec.log(
-                format!("{root}/world/trail").as_str(),
+                self.path("world/trail").as_str(),
                 &rerun::LineStrips3D::new([path])
                     .with_colors([rerun::Color::from_rgb(90, 120, 220)]),
             )?;
         }
-        // Joints.
-        for (i, name) in self.joint_names.iter().enumerate() {
-            self.rec.log(
-                format!("{root}/joints/{name}/fatigue").as_str(),
-                &rerun::Scalars::single(damage.fatigue()[i]),
-            )?;
-            self.rec.log(
-                format!("{root}/joints/{name}/scale").as_str(),
-                &rerun::Scalars::single(damage.scale()[i]),
-            )?;
-            self.rec.log(
-                format!("{root}/actions/commanded/{name}").as_str(),
-                &rerun::Scalars::single(out.commanded_action[i]),
-            )?;
-            self.rec.log(
-                format!("{root}/actions/applied/{name}").as_str(),
-                &rerun::Scalars::single(out.applied_action[i]),
-            )?;
-        }
+        // Joints and actions, one 8-wide batch each (series named by joint).
+        let scalars = |v: &[f64]| rerun::Scalars::new(v.iter().copied());
         self.rec.log(
-            format!("{root}/joints/threshold").as_str(),
-            &rerun::Scalars::single(self.threshold),
+            self.path("joints/fatigue").as_str(),
+            &scalars(damage.fatigue()),
         )?;
-        // Events since the last step, as text and as the state they changed.
+        self.rec
+            .log(self.path("joints/scale").as_str(), &scalars(damage.scale()))?;
+        self.rec.log(
+            self.path("actions/commanded").as_str(),
+            &scalars(&out.commanded_action),
+        )?;
+        self.rec.log(
+            self.path("actions/applied").as_str(),
+            &scalars(&out.applied_action),
+        )?;
+        // Events since the last step, as text (the state changes are in the series above).
         for e in &damage.events()[self.logged_events..] {
             let (level, text) = match &e.kind {
                 DamageEventKind::Trigger => (
@@ -432,36 +462,28 @@ impl AntLogger {
                 ),
             };
             self.rec.log(
-                format!("{root}/events").as_str(),
+                self.path("events").as_str(),
                 &rerun::TextLog::new(text).with_level(level),
             )?;
         }
         self.logged_events = damage.events().len();
-        // Reward and goal.
         let r = out.reward;
-        for (name, v) in [
-            ("native", r.native),
-            ("progress", r.progress),
-            ("success", r.success),
-            ("total", r.total),
-        ] {
-            self.rec.log(
-                format!("{root}/reward/{name}").as_str(),
-                &rerun::Scalars::single(v),
-            )?;
-        }
         self.rec.log(
-            format!("{root}/goal/distance").as_str(),
+            self.path("reward").as_str(),
+            &scalars(&[r.native, r.progress, r.success, r.total]),
+        )?;
+        self.rec.log(
+            self.path("goal/distance").as_str(),
             &rerun::Scalars::single(out.distance),
         )?;
         self.rec.log(
-            format!("{root}/goal/progress_rate").as_str(),
+            self.path("goal/progress_rate").as_str(),
             &rerun::Scalars::single(r.progress / self.dt),
         )?;
         // The latent, its PCA projection and the probes' readout.
         if let Some(z) = z {
             self.rec.log(
-                format!("{root}/latent/z").as_str(),
+                self.path("latent/z").as_str(),
                 &rerun::Scalars::new(z.iter().map(|&v| v as f64)),
             )?;
             if let Some(probe) = &self.probe {
@@ -471,13 +493,13 @@ impl AntLogger {
                 // Coloured by the number of triggered joints, as in the probe's PCA figure.
                 let c = crate::plots::viridis(N_ACTUATORS + 1)[damage.n_triggered()];
                 self.rec.log(
-                    format!("{root}/latent/pca").as_str(),
+                    self.path("latent/pca").as_str(),
                     &rerun::Points2D::new([point])
                         .with_radii([0.12])
                         .with_colors([rerun::Color::from_rgb(c.0, c.1, c.2)]),
                 )?;
                 self.pca_trail.push(point);
-                if out.step % TRAIL_EVERY == 0 {
+                if out.step.is_multiple_of(TRAIL_EVERY) {
                     let trail: Vec<[f32; 2]> = self
                         .pca_trail
                         .iter()
@@ -486,28 +508,24 @@ impl AntLogger {
                         .collect();
                     let faded = rerun::Color::from_unmultiplied_rgba(c.0, c.1, c.2, 120);
                     self.rec.log(
-                        format!("{root}/latent/pca_trail").as_str(),
+                        self.path("latent/pca_trail").as_str(),
                         &rerun::Points2D::new(trail)
                             .with_radii([0.04])
                             .with_colors([faded]),
                     )?;
                 }
-                for (i, name) in self.joint_names.iter().enumerate() {
-                    let predicted = probe.joint_probes[i]
-                        .probabilities(&z64)
-                        .last()
-                        .copied()
-                        .unwrap_or(0.0);
-                    let truth = damage.triggered()[i] && damage.scale()[i] < 1.0;
-                    self.rec.log(
-                        format!("{root}/probe/{name}/predicted").as_str(),
-                        &rerun::Scalars::single(predicted),
-                    )?;
-                    self.rec.log(
-                        format!("{root}/probe/{name}/truth").as_str(),
-                        &rerun::Scalars::single(f64::from(u8::from(truth))),
-                    )?;
-                }
+                let predicted: Vec<f64> = probe
+                    .joint_probes
+                    .iter()
+                    .map(|jp| jp.probabilities(&z64).last().copied().unwrap_or(0.0))
+                    .collect();
+                let truth: Vec<f64> = (0..N_ACTUATORS)
+                    .map(|i| f64::from(u8::from(damage.triggered()[i] && damage.scale()[i] < 1.0)))
+                    .collect();
+                self.rec
+                    .log(self.path("probe/predicted").as_str(), &scalars(&predicted))?;
+                self.rec
+                    .log(self.path("probe/truth").as_str(), &scalars(&truth))?;
             }
         }
         Ok(())
@@ -529,16 +547,22 @@ pub struct EpisodeMeta {
     pub seed: u64,
 }
 
-/// World pose of a geom as a Rerun transform (MuJoCo's xmat is row-major; Rerun's Mat3x3 from
-/// `[[f32; 3]; 3]` takes columns).
-fn geom_transform(env: &AntEnv, geom: usize) -> rerun::Transform3D {
+/// World position and orientation of a geom (MuJoCo's xmat is row-major).
+fn geom_pose(
+    env: &AntEnv,
+    geom: usize,
+) -> (rerun::external::glam::Vec3, rerun::external::glam::Quat) {
+    use rerun::external::glam::{Mat3, Quat, Vec3};
     let p = env.physics().geom_xpos()[geom];
-    let m = env.physics().geom_xmat()[geom];
-    let columns: [[f32; 3]; 3] =
-        std::array::from_fn(|c| [m[c] as f32, m[3 + c] as f32, m[6 + c] as f32]);
-    rerun::Transform3D::from_translation_mat3x3(
-        [p[0] as f32, p[1] as f32, p[2] as f32],
-        rerun::datatypes::Mat3x3::from(columns),
+    let m = env.physics().geom_xmat()[geom].map(|v| v as f32);
+    let rotation = Mat3::from_cols(
+        Vec3::new(m[0], m[3], m[6]),
+        Vec3::new(m[1], m[4], m[7]),
+        Vec3::new(m[2], m[5], m[8]),
+    );
+    (
+        Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32),
+        Quat::from_mat3(&rotation).normalize(),
     )
 }
 
@@ -624,12 +648,7 @@ pub fn record(
         opts.seed,
         opts.episodes
     );
-    let joints: Vec<String> = AntEnv::new(opts.config.clone(), 0)?
-        .actuators()
-        .iter()
-        .map(|a| a.joint.clone())
-        .collect();
-    let (rec, storage) = open(&opts.sink, &recording_id, &roots, &joints)?;
+    let (rec, storage) = open(&opts.sink, &recording_id, &roots)?;
     let mut lanes = Vec::new();
     for (actor, root) in opts.actors.iter().zip(&roots) {
         let mut config = opts.config.clone();

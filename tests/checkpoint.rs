@@ -83,7 +83,7 @@ fn save_then_load_gives_bit_identical_actions_and_z() {
 }
 
 fn load_err(dir: &Path, expected: Option<EncoderKind>) -> CheckpointError {
-    Policy::load(dir, expected).err().expect("load fails")
+    Policy::load(dir, expected).expect_err("load fails")
 }
 
 /// Rewrites model.safetensors with `edit` applied to its tensors, and fixes the CRC in the JSON,

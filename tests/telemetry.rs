@@ -84,7 +84,6 @@ fn chunks(msgs: impl IntoIterator<Item = rerun::log::LogMsg>) -> Vec<Chunk> {
 fn by_step<T: Copy>(
     chunks: &[Chunk],
     entity: &str,
-    component: re_chunk::ComponentIdentifier,
     read: impl Fn(&Chunk) -> Vec<T>,
 ) -> BTreeMap<i64, T> {
     let mut out = BTreeMap::new();
@@ -110,9 +109,10 @@ fn check(chunks: &[Chunk], truth: &Truth) {
     let entities: std::collections::BTreeSet<String> =
         chunks.iter().map(|c| c.entity_path().to_string()).collect();
     for e in [
-        "/ant/world/geoms/torso_geom",
+        "/ant/world/legs",
+        "/ant/world/torso",
         "/ant/world/goal",
-        "/ant/joints/ankle_1/fatigue",
+        "/ant/joints/fatigue",
         "/ant/events",
         "/ant/goal/distance",
         "/ant/episode",
@@ -120,35 +120,32 @@ fn check(chunks: &[Chunk], truth: &Truth) {
         assert!(entities.contains(e), "missing {e}; have {entities:?}");
     }
     let scalars = rerun::Scalars::descriptor_scalars().component;
-    for (i, joint) in truth.joint_names.iter().enumerate() {
-        let series = by_step(
-            chunks,
-            &format!("/ant/joints/{joint}/fatigue"),
-            scalars,
-            |c| c.iter_slices::<f64>(scalars).map(|s| s[0]).collect(),
-        );
+    let fatigue = by_step(chunks, "/ant/joints/fatigue", |c| {
+        c.iter_slices::<f64>(scalars)
+            .map(|s| <[f64; 8]>::try_from(s).expect("8 joints per row"))
+            .collect()
+    });
+    assert_eq!(fatigue.len(), truth.fatigue.len(), "one row per env step");
+    for (t, f) in truth.fatigue.iter().enumerate() {
+        // Env step t is logged at global step t + 1; series in actuator order.
         assert_eq!(
-            series.len(),
-            truth.fatigue.len(),
-            "one row per env step for {joint}"
+            &fatigue[&(t as i64 + 1)],
+            f,
+            "fatigue at step {t} ({:?})",
+            truth.joint_names
         );
-        for (t, f) in truth.fatigue.iter().enumerate() {
-            // Env step t is logged at global step t + 1.
-            assert_eq!(series[&(t as i64 + 1)], f[i], "{joint} fatigue at step {t}");
-        }
     }
-    let translation = rerun::Transform3D::descriptor_translation().component;
-    let torso = by_step(chunks, "/ant/world/geoms/torso_geom", translation, |c| {
-        c.iter_slices::<[f32; 3]>(translation)
+    let centers = rerun::Ellipsoids3D::descriptor_centers().component;
+    let torso = by_step(chunks, "/ant/world/torso", |c| {
+        c.iter_slices::<[f32; 3]>(centers)
             .filter_map(|s| s.first().copied())
             .collect()
     });
     for (t, x) in truth.torso_geom_xpos.iter().enumerate() {
-        let got = torso[&(t as i64 + 1)];
         assert_eq!(
-            got,
+            torso[&(t as i64 + 1)],
             [x[0] as f32, x[1] as f32, x[2] as f32],
-            "torso transform at step {t}"
+            "torso position at step {t}"
         );
     }
     let text = rerun::TextLog::descriptor_text().component;

@@ -286,7 +286,7 @@ impl Actor {
         mode: ActionMode,
         noise: Option<&[f32]>,
     ) -> Result<Vec<Decision>> {
-        if obs.is_empty() || obs.len() % net.obs_dim != 0 {
+        if obs.is_empty() || !obs.len().is_multiple_of(net.obs_dim) {
             candle_core::bail!(
                 "observation batch of {} values is not a multiple of {}",
                 obs.len(),
