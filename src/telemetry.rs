@@ -18,7 +18,8 @@
 //! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
 //! | `{root}/latent/z` | Scalars × 32 | per step (encoder policies) |
-//! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point; episode every 5th step) | with `probe.json` |
+//! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point, large; episode every 5th step), coloured by triggered joints | with `probe.json` |
+//! | `{root}/latent/pca3`, `{root}/latent/pca3_trail` | Points3D, the same in the first three PCA axes | with `probe.json` |
 //! | `{root}/probe/predicted`, `{root}/probe/truth` | Scalars × 8: P(joint damaged) from z, and the truth | with `probe.json` |
 //! | `{root}/episode` | TextDocument (checkpoint, encoder, condition, seed, outcome) | episode start and end |
 
@@ -104,6 +105,8 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
     let latent = TimeSeriesView::new("z").with_contents(paths(&["latent/z"]));
     let pca = Spatial2DView::new("z in PCA basis")
         .with_contents(paths(&["latent/pca", "latent/pca_trail"]));
+    let pca3 = Spatial3DView::new("z in PCA basis, 3-D")
+        .with_contents(paths(&["latent/pca3", "latent/pca3_trail"]));
     let progress = TimeSeriesView::new("Goal distance").with_contents(paths(&["goal/distance"]));
     let probe =
         TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"]));
@@ -114,7 +117,12 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
                 .with_row_shares([3.0, 1.0])
                 .into(),
             Vertical::new([fatigue.into(), scale.into(), progress.into()]).into(),
-            Vertical::new([latent.into(), pca.into(), probe.into()]).into(),
+            Vertical::new([
+                latent.into(),
+                rerun::blueprint::Tabs::new([pca.into(), pca3.into()]).into(),
+                probe.into(),
+            ])
+            .into(),
         ])
         .with_column_shares([2.0, 1.2, 1.2]),
     )
@@ -144,7 +152,8 @@ pub struct AntLogger {
     joint_names: Vec<String>,
     probe: Option<ProbeFile>,
     trail: Vec<[f32; 3]>,
-    pca_trail: Vec<[f32; 2]>,
+    /// PCA projections of this episode (up to 3 axes) with their colour (triggered joints).
+    pca_trail: Vec<([f32; 3], rerun::Color)>,
     logged_events: usize,
     static_logged: bool,
     dt: f64,
@@ -489,29 +498,37 @@ impl AntLogger {
             if let Some(probe) = &self.probe {
                 let z64: Vec<f64> = z.iter().map(|&v| v as f64).collect();
                 let p = probe.pca.project(&z64);
-                let point = [p[0] as f32, p.get(1).copied().unwrap_or(0.0) as f32];
+                let axis = |k: usize| p.get(k).copied().unwrap_or(0.0) as f32;
                 // Coloured by the number of triggered joints, as in the probe's PCA figure.
                 let c = crate::plots::viridis(N_ACTUATORS + 1)[damage.n_triggered()];
+                let current = rerun::Color::from_rgb(c.0, c.1, c.2);
+                self.pca_trail.push(([axis(0), axis(1), axis(2)], current));
                 self.rec.log(
                     self.path("latent/pca").as_str(),
-                    &rerun::Points2D::new([point])
+                    &rerun::Points2D::new([[axis(0), axis(1)]])
                         .with_radii([0.12])
-                        .with_colors([rerun::Color::from_rgb(c.0, c.1, c.2)]),
+                        .with_colors([current]),
                 )?;
-                self.pca_trail.push(point);
+                self.rec.log(
+                    self.path("latent/pca3").as_str(),
+                    &rerun::Points3D::new([[axis(0), axis(1), axis(2)]])
+                        .with_radii([0.08])
+                        .with_colors([current]),
+                )?;
                 if out.step.is_multiple_of(TRAIL_EVERY) {
-                    let trail: Vec<[f32; 2]> = self
-                        .pca_trail
-                        .iter()
-                        .step_by(TRAIL_EVERY)
-                        .copied()
-                        .collect();
-                    let faded = rerun::Color::from_unmultiplied_rgba(c.0, c.1, c.2, 120);
+                    let trail: Vec<&([f32; 3], rerun::Color)> =
+                        self.pca_trail.iter().step_by(TRAIL_EVERY).collect();
                     self.rec.log(
                         self.path("latent/pca_trail").as_str(),
-                        &rerun::Points2D::new(trail)
+                        &rerun::Points2D::new(trail.iter().map(|(p, _)| [p[0], p[1]]))
                             .with_radii([0.04])
-                            .with_colors([faded]),
+                            .with_colors(trail.iter().map(|(_, c)| *c)),
+                    )?;
+                    self.rec.log(
+                        self.path("latent/pca3_trail").as_str(),
+                        &rerun::Points3D::new(trail.iter().map(|(p, _)| *p))
+                            .with_radii([0.03])
+                            .with_colors(trail.iter().map(|(_, c)| *c)),
                     )?;
                 }
                 let predicted: Vec<f64> = probe
