@@ -70,7 +70,6 @@ pub fn collect(
     seed: u64,
 ) -> Result<Vec<ProbeStep>, ProbeError> {
     let net = policy.net().clone();
-    let uses_window = net.encoder.uses_window();
     let mut steps = Vec::new();
     let mut episode = 0;
     for k in 0..episodes_per_condition {
@@ -83,15 +82,7 @@ pub fn collect(
             let mut obs = env.reset_with_seed(episode_seed);
             let mut window = ContextWindow::new(net.context_len);
             loop {
-                let obs32: Vec<f32> = obs.iter().map(|&v| v as f32).collect();
-                let decision = policy
-                    .act_batch(
-                        &obs32,
-                        uses_window.then_some(window.as_slice()),
-                        ActionMode::Deterministic,
-                        None,
-                    )?
-                    .remove(0);
+                let decision = policy.act_one(&obs, &window, ActionMode::Deterministic, None)?;
                 let out = env.step(&decision.action)?;
                 let damage = env.damage();
                 steps.push(ProbeStep {

@@ -27,7 +27,7 @@ use rerun::blueprint::{
     Blueprint, Horizontal, Spatial2DView, Spatial3DView, TextLogView, TimeSeriesView, Vertical,
 };
 use rerun::{RecordingStream, RecordingStreamBuilder};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use crate::damage::{DamageEventKind, JointState, N_ACTUATORS};
 use crate::env::{AntEnv, StepOutcome};
@@ -158,6 +158,8 @@ pub struct AntLogger {
     static_logged: bool,
     dt: f64,
     threshold: f64,
+    /// PCA point colour by number of triggered joints (0..=8), as in the probe's PCA figure.
+    pca_palette: Vec<rerun::Color>,
 }
 
 /// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
@@ -218,11 +220,11 @@ impl AntLogger {
             static_logged: false,
             dt: env.dt(),
             threshold: env.config().damage.threshold,
+            pca_palette: crate::plots::viridis(N_ACTUATORS + 1)
+                .into_iter()
+                .map(|c| rerun::Color::from_rgb(c.0, c.1, c.2))
+                .collect(),
         }
-    }
-
-    pub fn recording(&self) -> &RecordingStream {
-        &self.rec
     }
 
     fn path(&self, leaf: &str) -> String {
@@ -500,8 +502,7 @@ impl AntLogger {
                 let p = probe.pca.project(&z64);
                 let axis = |k: usize| p.get(k).copied().unwrap_or(0.0) as f32;
                 // Coloured by the number of triggered joints, as in the probe's PCA figure.
-                let c = crate::plots::viridis(N_ACTUATORS + 1)[damage.n_triggered()];
-                let current = rerun::Color::from_rgb(c.0, c.1, c.2);
+                let current = self.pca_palette[damage.n_triggered()];
                 self.pca_trail.push(([axis(0), axis(1), axis(2)], current));
                 self.rec.log(
                     self.path("latent/pca").as_str(),
@@ -547,13 +548,6 @@ impl AntLogger {
         }
         Ok(())
     }
-
-    /// Blocks until everything logged so far reached the sink.
-    pub fn flush(&self) -> Result<(), TelemetryError> {
-        self.rec
-            .flush_blocking()
-            .map_err(|e| TelemetryError::Flush(e.to_string()))
-    }
 }
 
 /// Checkpoint, encoder and seed of an episode, for the metadata document.
@@ -581,11 +575,6 @@ fn geom_pose(
         Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32),
         Quat::from_mat3(&rotation).normalize(),
     )
-}
-
-/// Default path for a recording of `name`.
-pub fn recording_path(dir: &Path, name: &str) -> PathBuf {
-    dir.join(format!("{name}.rrd"))
 }
 
 /// Who acts in a recorded episode.
@@ -705,19 +694,20 @@ pub fn record(
         let seed = opts.seed.wrapping_add(k as u64);
         let mut obs = Vec::new();
         let mut rngs = Vec::new();
-        for ((env, logger, window), actor) in lanes.iter_mut().zip(&opts.actors) {
+        let metas: Vec<EpisodeMeta> = opts
+            .actors
+            .iter()
+            .map(|actor| EpisodeMeta {
+                checkpoint: actor.label(),
+                encoder: actor.encoder(),
+                seed,
+            })
+            .collect();
+        for ((env, logger, window), meta) in lanes.iter_mut().zip(&metas) {
             obs.push(env.reset_with_seed(seed));
             window.clear();
             logger.set_time(global_step, k as u64);
-            logger.log_episode(
-                &EpisodeMeta {
-                    checkpoint: actor.label(),
-                    encoder: actor.encoder(),
-                    seed,
-                },
-                env,
-                None,
-            )?;
+            logger.log_episode(meta, env, None)?;
             rngs.push(crate::rollout::policy_rng(seed));
         }
         let mut done = vec![false; lanes.len()];
@@ -735,15 +725,12 @@ pub fn record(
                 }
                 let (action, z) = match actor {
                     Actor::Checkpoint { policy, .. } => {
-                        let o: Vec<f32> = obs[i].iter().map(|&v| v as f32).collect();
-                        let w = policy
-                            .net()
-                            .encoder
-                            .uses_window()
-                            .then(|| window.as_slice());
-                        let d = policy
-                            .act_batch(&o, w, crate::policy::ActionMode::Deterministic, None)?
-                            .remove(0);
+                        let d = policy.act_one(
+                            &obs[i],
+                            window,
+                            crate::policy::ActionMode::Deterministic,
+                            None,
+                        )?;
                         (d.action, d.z)
                     }
                     Actor::Builtin(p) => (p.act(&mut rngs[i]).to_vec(), None),
@@ -755,15 +742,7 @@ pub fn record(
                 obs[i] = out.obs;
                 if out.done() {
                     done[i] = true;
-                    logger.log_episode(
-                        &EpisodeMeta {
-                            checkpoint: actor.label(),
-                            encoder: actor.encoder(),
-                            seed,
-                        },
-                        env,
-                        Some(&out),
-                    )?;
+                    logger.log_episode(&metas[i], env, Some(&out))?;
                 }
             }
         }

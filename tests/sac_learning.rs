@@ -121,17 +121,10 @@ fn evaluate(dir: &std::path::Path, echo: Echo) -> f64 {
         let mut obs = task.reset_with_seed(10_000 + episode);
         window.clear();
         loop {
-            let w = window.as_slice().to_vec();
-            let uses_window = net.encoder.uses_window();
-            let d = policy
-                .act_batch(
-                    &[obs[0] as f32],
-                    uses_window.then_some(&w[..]),
-                    ActionMode::Deterministic,
-                    None,
-                )
-                .unwrap();
-            let action = d[0].action.clone();
+            let action = policy
+                .act_one(&obs, &window, ActionMode::Deterministic, None)
+                .unwrap()
+                .action;
             let step = task.step(&action).unwrap();
             window.push(&obs, &action);
             total += step.reward;

@@ -3,7 +3,7 @@
 //! renamed, JSON last; the JSON records the CRC-32 of the weights, so a torn or mixed-up pair is
 //! caught at load time instead of producing a silently wrong policy.
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -366,9 +366,4 @@ impl Policy {
         let (model, meta) = SacModel::load(dir, expected, &device)?;
         Ok(Policy::new(meta, model.actor, device))
     }
-}
-
-/// Tensors as plain f32 vectors, e.g. for Adam state.
-pub fn to_host(t: &Tensor) -> candle_core::Result<Vec<f32>> {
-    t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()
 }

@@ -536,4 +536,25 @@ impl Policy {
         self.actor
             .decide(&self.meta.net, &self.device, obs, window, mode, noise)
     }
+
+    /// One decision for a single env, from its observation and context window (the window is
+    /// ignored by the memoryless baseline).
+    pub fn act_one(
+        &self,
+        obs: &[f64],
+        window: &crate::window::ContextWindow,
+        mode: ActionMode,
+        noise: Option<&[f32]>,
+    ) -> Result<Decision> {
+        let obs: Vec<f32> = obs.iter().map(|&v| v as f32).collect();
+        let window = self
+            .meta
+            .net
+            .encoder
+            .uses_window()
+            .then(|| window.as_slice());
+        self.act_batch(&obs, window, mode, noise)?
+            .pop()
+            .ok_or_else(|| candle_core::Error::Msg("the policy returned no decision".into()))
+    }
 }
