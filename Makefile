@@ -5,9 +5,10 @@ CARGO ?= cargo
 setup:
 	@./scripts/setup.sh
 
-# The main job: a headless demo rollout (random policy, randomised damage) with per-episode summaries.
+# The main job: the live viewer on the bundled encoder checkpoint (with a display), else the same
+# models recorded headlessly to recordings/latest.rrd (see scripts/run.sh).
 run: setup
-	$(CARGO) run --release -- rollout --policy random --episodes 5 --seed 0
+	@CARGO=$(CARGO) ./scripts/run.sh
 
 # Every test, in the release profile (the one `run` builds, so CI compiles dependencies once).
 test: setup

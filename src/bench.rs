@@ -10,6 +10,7 @@ use mujoco_rs::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
+use std::path::Path;
 use std::time::Instant;
 
 use crate::config::GaitConfig;
@@ -373,4 +374,72 @@ pub fn bench_record(
         rss_before_mb,
         rss_after_mb: rss_mb(),
     })
+}
+
+/// One live-loop measurement: how many models, at what speed, and what the loop achieved.
+#[derive(Debug, Clone)]
+pub struct LiveBenchRow {
+    pub models: usize,
+    pub report: crate::app::SpeedReport,
+}
+
+impl std::fmt::Display for LiveBenchRow {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = &self.report;
+        write!(
+            f,
+            "{} model(s) at {}×: {:.1} of {:.0} env steps/s asked for ({:.1} % of real time) over {:.1} s",
+            self.models,
+            r.speed,
+            r.steps_per_s(),
+            r.target_steps_per_s,
+            100.0 * r.keeps_up(),
+            r.seconds
+        )
+    }
+}
+
+/// The live loop, headless (telemetry to a scratch .rrd, no panel): at 1× and 8× real time, the
+/// checkpoint alone and side by side with `compare`, `seconds` each.
+pub fn bench_live(
+    checkpoint: &Path,
+    compare: &Path,
+    seconds: f64,
+) -> Result<Vec<LiveBenchRow>, crate::app::LiveError> {
+    use crate::app::{LiveCondition, LiveSetup, SimHandle};
+    use crate::telemetry::{Sink, open};
+    let scratch = std::env::temp_dir().join(format!("gaitscope-bench-live-{}", std::process::id()));
+    let mut rows = Vec::new();
+    for second in [None, Some(compare.to_path_buf())] {
+        for speed in [1.0, 8.0] {
+            let sink = Sink::File(scratch.join("live.rrd"));
+            let (rec, _) = open(
+                &sink,
+                "gaitscope-bench-live",
+                &["ant".into(), "compare".into()],
+            )?;
+            let setup = LiveSetup {
+                checkpoint: checkpoint.to_path_buf(),
+                compare: second.clone(),
+                condition: LiveCondition::Severe,
+                seed: 0,
+                speed,
+                step_limit: 500,
+                mode: crate::policy::ActionMode::Deterministic,
+                paused: false,
+                config: crate::GaitConfig::default(),
+            };
+            let sim = SimHandle::spawn(rec, setup)?;
+            std::thread::sleep(std::time::Duration::from_secs_f64(seconds));
+            let report = sim.shutdown()?;
+            if let Some(r) = report.speeds.into_iter().find(|r| r.speed == speed) {
+                rows.push(LiveBenchRow {
+                    models: 1 + usize::from(second.is_some()),
+                    report: r,
+                });
+            }
+        }
+    }
+    let _ = std::fs::remove_dir_all(&scratch);
+    Ok(rows)
 }

@@ -150,6 +150,9 @@ pub struct DamageState {
     manual: [bool; N_ACTUATORS],
     scale: [f64; N_ACTUATORS],
     events: Vec<DamageEvent>,
+    /// Whether fatigue reaching τ triggers a joint (off in the live viewer's manual condition,
+    /// where only a person damages joints). Kept across resets.
+    fatigue_triggers: bool,
 }
 
 impl DamageState {
@@ -164,7 +167,17 @@ impl DamageState {
             manual: [false; N_ACTUATORS],
             scale: [1.0; N_ACTUATORS],
             events: Vec::new(),
+            fatigue_triggers: true,
         }
+    }
+
+    /// Turns fatigue triggers on or off; fatigue still accumulates either way.
+    pub fn set_fatigue_triggers(&mut self, on: bool) {
+        self.fatigue_triggers = on;
+    }
+
+    pub fn fatigue_triggers(&self) -> bool {
+        self.fatigue_triggers
     }
 
     /// Starts a new episode under `condition`: no fatigue, no triggers, full torque.
@@ -195,7 +208,7 @@ impl DamageState {
         let mut new_triggers = 0;
         for i in 0..N_ACTUATORS {
             self.fatigue[i] += alpha * commanded[i].abs() + beta * contact_norms[i];
-            if !self.triggered[i] && self.fatigue[i] >= threshold {
+            if self.fatigue_triggers && !self.triggered[i] && self.fatigue[i] >= threshold {
                 self.triggered[i] = true;
                 if !self.manual[i] {
                     self.scale[i] = self.condition.scale(&self.config.scales);
@@ -386,6 +399,25 @@ mod tests {
                 .to_string(),
             "torque scale NaN must be a finite number in [0, 1]"
         );
+    }
+
+    #[test]
+    fn fatigue_triggers_can_be_switched_off() {
+        let mut d = state(Condition::Severe);
+        d.set_fatigue_triggers(false);
+        let a = [1.0; N_ACTUATORS];
+        // 40 steps of |a| = 1: fatigue 40 > τ = 30, but nothing triggers.
+        for t in 0..40 {
+            assert_eq!(d.accumulate(t, &a, &[0.0; N_ACTUATORS]), 0);
+        }
+        assert_eq!(d.fatigue()[0], 40.0);
+        assert_eq!(d.applied_action(&a), a);
+        // A person still can: fail-now uses the condition's scale.
+        d.apply_override(40, 3, JointOverride::FailNow).unwrap();
+        assert_eq!(d.applied_action(&a)[3], 0.1);
+        // The setting survives a reset; the next step past τ does not trigger either.
+        d.reset(Condition::Severe);
+        assert!(!d.fatigue_triggers());
     }
 
     #[test]

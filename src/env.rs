@@ -391,6 +391,10 @@ impl AntEnv {
     pub fn condition(&self) -> Condition {
         self.damage.condition()
     }
+    /// Whether fatigue triggers joints (see [`DamageState::set_fatigue_triggers`]).
+    pub fn set_fatigue_triggers(&mut self, on: bool) {
+        self.damage.set_fatigue_triggers(on);
+    }
 }
 
 /// Keeps MuJoCo's warnings on the console instead of also appending them to `MUJOCO_LOG.TXT` in

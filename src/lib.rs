@@ -1,8 +1,10 @@
 //! gaitscope: watch, train and debug legged-robot policies that adapt to joint damage.
 //!
 //! Data flows one way: physics ([`env`]) → damage ([`damage`]) → policy → telemetry.
-//! The context window ([`window`]) is what a context-encoder policy reads.
+//! The context window ([`window`]) is what a context-encoder policy reads; [`app`] is the live
+//! viewer on top of it all.
 
+pub mod app;
 pub mod bench;
 pub mod config;
 pub mod damage;

@@ -32,6 +32,10 @@ enum Command {
     Train(TrainArgs),
     /// Record episodes headlessly to a .rrd file for the Rerun viewer.
     Record(RecordArgs),
+    /// Watch a policy live in the Rerun viewer and damage its joints by hand from a control panel.
+    Live(LiveArgs),
+    /// Open a recording (.rrd) in the Rerun viewer to scrub it.
+    View(ViewArgs),
     /// Evaluate checkpoints under each damage condition (paired seeds, Wilson intervals, McNemar).
     Eval(EvalArgs),
     /// Linear probes and PCA on an encoder's z; saves probe.json next to the checkpoint.
@@ -167,6 +171,59 @@ struct RecordArgs {
 }
 
 #[derive(Args)]
+struct LiveArgs {
+    /// Checkpoint to watch (any folder `gaitscope train` wrote).
+    #[arg(long, value_name = "DIR", default_value = "checkpoints/encoder-lstm")]
+    checkpoint: PathBuf,
+    /// A second checkpoint, side by side under the same damage (e.g. checkpoints/baseline).
+    #[arg(long, value_name = "DIR")]
+    compare: Option<PathBuf>,
+    #[arg(
+        long,
+        value_name = "healthy|mild|severe|manual",
+        default_value = "severe"
+    )]
+    condition: gaitscope::app::LiveCondition,
+    /// Seed of the first episode (each next episode uses the next seed).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Playback speed, a multiple of real time (20 env steps/s): 0.25 to 8.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// Sample actions from the policy instead of taking its mean.
+    #[arg(long)]
+    sampled: bool,
+    /// Start paused (step with the panel's Step button).
+    #[arg(long)]
+    paused: bool,
+    /// Stream to a viewer that is already running, e.g. rerun+http://HOST:9876/proxy.
+    #[arg(long, value_name = "URL")]
+    connect: Option<String>,
+    /// Also save the session to this .rrd file.
+    #[arg(long, value_name = "FILE")]
+    save: Option<PathBuf>,
+    /// The Rerun viewer binary (default: $GAITSCOPE_RERUN, .deps/rerun/rerun, then PATH).
+    #[arg(long, value_name = "PATH")]
+    viewer: Option<PathBuf>,
+    /// Close after this many seconds and print the frame-rate / real-time report (scripts).
+    #[arg(long, value_name = "SECONDS")]
+    exit_after: Option<f64>,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
+#[derive(Args)]
+struct ViewArgs {
+    /// The recording to open.
+    file: PathBuf,
+    /// The Rerun viewer binary (default: $GAITSCOPE_RERUN, .deps/rerun/rerun, then PATH).
+    #[arg(long, value_name = "PATH")]
+    viewer: Option<PathBuf>,
+}
+
+#[derive(Args)]
 struct EvalArgs {
     /// Checkpoint folders (give a baseline and encoders to get paired tests and the recovery fraction).
     #[arg(long = "checkpoint", value_name = "DIR", required = true, num_args = 1..)]
@@ -226,6 +283,17 @@ enum BenchCommand {
         #[arg(long, default_value_t = 20)]
         episodes: usize,
     },
+    /// Live loop: how far the simulation keeps up with real time at 1× and 8× (headless, with
+    /// telemetry to a file), for a checkpoint alone and side by side with a second one.
+    Live {
+        #[arg(long, value_name = "DIR", default_value = "checkpoints/encoder-lstm")]
+        checkpoint: PathBuf,
+        #[arg(long, value_name = "DIR", default_value = "checkpoints/baseline")]
+        compare: PathBuf,
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+    },
     /// Evaluation throughput: 100 episodes per condition (300 in all) of one checkpoint.
     Eval {
         #[arg(long, value_name = "DIR")]
@@ -269,6 +337,21 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(args) => train_command(args),
         Command::Eval(args) => eval_command(args),
         Command::Record(args) => record_command(args),
+        Command::Live(args) => live_command(args),
+        Command::View(args) => view_command(args),
+        Command::Bench(BenchCommand::Live {
+            checkpoint,
+            compare,
+            seconds,
+        }) => {
+            if !(seconds.is_finite() && seconds > 0.0) {
+                bail!("--seconds must be a positive number");
+            }
+            for row in gaitscope::bench::bench_live(&checkpoint, &compare, seconds)? {
+                println!("{row}");
+            }
+            Ok(())
+        }
         Command::Probe(args) => probe_command(args),
         Command::Bench(BenchCommand::Env { steps, runs, env }) => {
             if steps == 0 {
@@ -502,6 +585,134 @@ fn record_command(args: RecordArgs) -> Result<()> {
         args.out.display(),
         args.out.display()
     );
+    Ok(())
+}
+
+fn live_command(args: LiveArgs) -> Result<()> {
+    use gaitscope::app::{self, viewer};
+    use gaitscope::telemetry::{self, Sink};
+    if !cfg!(feature = "live") {
+        bail!(
+            "this gaitscope was built without the `live` feature (the control panel); rebuild              with default features, or use `gaitscope record` to write a .rrd headlessly"
+        );
+    }
+    viewer::require_display("gaitscope live")?;
+    if let Some(secs) = args.exit_after
+        && !(secs.is_finite() && secs > 0.0)
+    {
+        bail!("--exit-after must be a positive number of seconds");
+    }
+    if let Some(path) = &args.save
+        && path.extension().and_then(|e| e.to_str()) != Some("rrd")
+    {
+        bail!("--save {} should end in .rrd", path.display());
+    }
+    let mut config = args.env.load()?;
+    config.env.max_episode_steps = args.max_steps;
+    let setup = app::LiveSetup {
+        checkpoint: args.checkpoint.clone(),
+        compare: args.compare.clone(),
+        condition: args.condition,
+        seed: args.seed,
+        speed: args.speed,
+        step_limit: args.max_steps,
+        mode: if args.sampled {
+            gaitscope::policy::ActionMode::Sampled
+        } else {
+            gaitscope::policy::ActionMode::Deterministic
+        },
+        paused: args.paused,
+        config,
+    };
+    // Check what can be checked before any window opens.
+    setup.validate()?;
+    let url = match &args.connect {
+        Some(url) => url.clone(),
+        None => {
+            let path = viewer::find_viewer(args.viewer.as_deref())?;
+            let url = viewer::spawn_viewer(&path)?;
+            eprintln!(
+                "streaming to the Rerun viewer ({}) at {url}",
+                path.display()
+            );
+            url
+        }
+    };
+    let recording_id = format!("gaitscope-live-{}", std::process::id());
+    // The blueprint gets a 3-D view per model shown from the start (a model added later from
+    // the panel streams too; the viewer's "+" adds a view for it).
+    let models = 1 + usize::from(args.compare.is_some());
+    let roots: Vec<String> = app::LIVE_ROOTS[..models]
+        .iter()
+        .map(|r| r.to_string())
+        .collect();
+    let sink = Sink::Viewer {
+        url,
+        save: args.save.clone(),
+    };
+    let (rec, _) = telemetry::open(&sink, &recording_id, &roots)?;
+    let sim = app::SimHandle::spawn(rec, setup)?;
+    let mut checkpoints = app::discover_checkpoints(std::path::Path::new("checkpoints"));
+    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
+        if !checkpoints.contains(dir) {
+            checkpoints.push(dir.clone());
+        }
+    }
+    let panel = run_panel(&sim, checkpoints, args.exit_after);
+    let report = sim.shutdown()?;
+    let stats = panel?;
+    eprintln!(
+        "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
+        stats.frames,
+        stats.seconds,
+        stats.fps(),
+        stats.mean_frame_cpu_ms
+    );
+    for s in &report.speeds {
+        eprintln!(
+            "sim at {}×: {:.1} of {:.0} env steps/s ({:.0} % of real time asked for) over {:.1} s",
+            s.speed,
+            s.steps_per_s(),
+            s.target_steps_per_s,
+            100.0 * s.keeps_up(),
+            s.seconds
+        );
+    }
+    if let Some(path) = &args.save {
+        eprintln!("session saved to {}", path.display());
+    }
+    Ok(())
+}
+
+#[cfg(feature = "live")]
+fn run_panel(
+    sim: &gaitscope::app::SimHandle,
+    checkpoints: Vec<PathBuf>,
+    exit_after: Option<f64>,
+) -> Result<gaitscope::app::PanelStats> {
+    let options = gaitscope::app::panel::PanelOptions {
+        checkpoints,
+        exit_after: exit_after.map(std::time::Duration::from_secs_f64),
+    };
+    Ok(gaitscope::app::panel::run_panel(sim.link(), options)?)
+}
+
+#[cfg(not(feature = "live"))]
+fn run_panel(
+    _sim: &gaitscope::app::SimHandle,
+    _checkpoints: Vec<PathBuf>,
+    _exit_after: Option<f64>,
+) -> Result<gaitscope::app::PanelStats> {
+    bail!("this gaitscope was built without the `live` feature (the control panel)")
+}
+
+fn view_command(args: ViewArgs) -> Result<()> {
+    use gaitscope::app::viewer;
+    // The file first: a wrong path is the likelier mistake, and needs no display to report.
+    viewer::check_recording(&args.file)?;
+    viewer::require_display("gaitscope view")?;
+    let path = viewer::find_viewer(args.viewer.as_deref())?;
+    viewer::view_recording(&path, &args.file)?;
     Ok(())
 }
 

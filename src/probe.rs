@@ -370,6 +370,15 @@ impl ProbeFile {
         })
     }
 
+    /// P(joint damaged | z) from each joint's probe, in actuator order: the live readout.
+    pub fn joint_damage_probabilities(&self, z: &[f32]) -> Vec<f64> {
+        let z: Vec<f64> = z.iter().map(|&v| f64::from(v)).collect();
+        self.joint_probes
+            .iter()
+            .map(|p| p.probabilities(&z).last().copied().unwrap_or(0.0))
+            .collect()
+    }
+
     /// Mean per-joint test accuracy.
     pub fn mean_joint_accuracy(&self) -> f64 {
         self.joints.iter().map(|j| j.test.accuracy).sum::<f64>() / self.joints.len().max(1) as f64

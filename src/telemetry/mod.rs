@@ -33,6 +33,12 @@ use crate::damage::{DamageEventKind, JointState, N_ACTUATORS};
 use crate::env::{AntEnv, StepOutcome};
 use crate::probe::ProbeFile;
 
+mod session;
+pub use session::{
+    Actor, Lane, LaneSpec, RecordError, RecordOptions, RecordSummary, Session, model_roots, record,
+    side_by_side_offset,
+};
+
 pub const APP_ID: &str = "gaitscope";
 /// Log the trail (torso path, PCA path) every this many steps: bounded bytes per step.
 pub const TRAIL_EVERY: usize = 5;
@@ -45,6 +51,10 @@ pub enum TelemetryError {
     File { path: PathBuf, reason: String },
     #[error("flushing the recording: {0}")]
     Flush(String),
+    #[error(
+        "'{url}' is not a Rerun viewer address (expected rerun+http://HOST:PORT/proxy): {reason}"
+    )]
+    Url { url: String, reason: String },
 }
 
 /// Where a recording goes.
@@ -52,9 +62,29 @@ pub enum TelemetryError {
 pub enum Sink {
     File(PathBuf),
     Memory,
+    /// A running Rerun viewer (`rerun+http://HOST:PORT/proxy`), and optionally a file as well.
+    Viewer {
+        url: String,
+        save: Option<PathBuf>,
+    },
 }
 
-/// Opens a recording with our default blueprint and no wall-clock timeline.
+fn file_sink_error(path: &std::path::Path, e: impl std::fmt::Display) -> TelemetryError {
+    TelemetryError::File {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
+}
+
+fn create_parent_dir(path: &std::path::Path) -> Result<(), TelemetryError> {
+    match path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        Some(dir) => std::fs::create_dir_all(dir).map_err(|e| file_sink_error(path, e)),
+        None => Ok(()),
+    }
+}
+
+/// Opens a recording with our blueprint (made active: its views depend on the models, so a
+/// layout the viewer kept from another recording must not win) and no wall-clock timeline.
 /// `recording_id` makes the recording reproducible (same id for the same inputs).
 pub fn open(
     sink: &Sink,
@@ -63,24 +93,34 @@ pub fn open(
 ) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
     let builder = RecordingStreamBuilder::new(APP_ID)
         .recording_id(recording_id.to_string())
-        .with_default_blueprint(default_blueprint(roots));
+        .with_blueprint(default_blueprint(roots));
     let (rec, storage) = match sink {
         Sink::File(path) => {
-            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).map_err(|e| TelemetryError::File {
-                    path: path.clone(),
-                    reason: e.to_string(),
-                })?;
-            }
-            let rec = builder.save(path).map_err(|e| TelemetryError::File {
-                path: path.clone(),
-                reason: e.to_string(),
-            })?;
+            create_parent_dir(path)?;
+            let rec = builder.save(path).map_err(|e| file_sink_error(path, e))?;
             (rec, None)
         }
         Sink::Memory => {
             let (rec, storage) = builder.memory()?;
             (rec, Some(storage))
+        }
+        Sink::Viewer { url, save } => {
+            let uri: rerun::external::re_uri::ProxyUri =
+                url.parse().map_err(|e| TelemetryError::Url {
+                    url: url.clone(),
+                    reason: format!("{e}"),
+                })?;
+            let viewer = rerun::sink::GrpcSink::new(uri);
+            let rec = match save {
+                Some(path) => {
+                    create_parent_dir(path)?;
+                    let file =
+                        rerun::sink::FileSink::new(path).map_err(|e| file_sink_error(path, e))?;
+                    builder.set_sinks((viewer, file))?
+                }
+                None => builder.set_sinks((viewer,))?,
+            };
+            (rec, None)
         }
     };
     rec.set_log_time_enabled(false);
@@ -96,9 +136,26 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
             .flat_map(|r| leaves.iter().map(move |l| format!("/{r}/{l}")))
             .collect()
     };
-    let world = Spatial3DView::new("Ant")
-        .with_origin("/")
-        .with_contents(paths(&["world/**"]));
+    // One 3-D view per model: side-by-side models each get their own camera.
+    let mut worlds: Vec<rerun::blueprint::ContainerLike> = roots
+        .iter()
+        .map(|r| {
+            let name = if roots.len() == 1 {
+                "Ant".to_string()
+            } else {
+                format!("Ant: {r}")
+            };
+            Spatial3DView::new(name)
+                .with_origin("/")
+                .with_contents([format!("/{r}/world/**")])
+                .into()
+        })
+        .collect();
+    let world: rerun::blueprint::ContainerLike = if worlds.len() == 1 {
+        worlds.remove(0)
+    } else {
+        Horizontal::new(worlds).into()
+    };
     let fatigue = TimeSeriesView::new("Fatigue per joint (τ = threshold)")
         .with_contents(paths(&["joints/fatigue", "joints/threshold"]));
     let scale = TimeSeriesView::new("Torque scale").with_contents(paths(&["joints/scale"]));
@@ -113,7 +170,7 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
     let events = TextLogView::new("Damage events").with_contents(paths(&["events"]));
     Blueprint::new(
         Horizontal::new([
-            Vertical::new([world.into(), events.into()])
+            Vertical::new([world, events.into()])
                 .with_row_shares([3.0, 1.0])
                 .into(),
             Vertical::new([fatigue.into(), scale.into(), progress.into()]).into(),
@@ -160,6 +217,8 @@ pub struct AntLogger {
     threshold: f64,
     /// PCA point colour by number of triggered joints (0..=8), as in the probe's PCA figure.
     pca_palette: Vec<rerun::Color>,
+    /// Where this model's world is drawn, so side-by-side Ants do not overlap.
+    world_offset: [f32; 3],
 }
 
 /// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
@@ -224,7 +283,18 @@ impl AntLogger {
                 .into_iter()
                 .map(|c| rerun::Color::from_rgb(c.0, c.1, c.2))
                 .collect(),
+            world_offset: [0.0; 3],
         }
+    }
+
+    /// Draws this model's world (floor, goal, Ant) shifted by `offset` metres.
+    pub fn with_world_offset(mut self, offset: [f32; 3]) -> Self {
+        self.world_offset = offset;
+        self
+    }
+
+    pub fn probe(&self) -> Option<&ProbeFile> {
+        self.probe.as_ref()
     }
 
     fn path(&self, leaf: &str) -> String {
@@ -233,6 +303,12 @@ impl AntLogger {
 
     fn log_static(&mut self, env: &AntEnv) -> Result<(), TelemetryError> {
         let rec = &self.rec;
+        if self.world_offset != [0.0; 3] {
+            rec.log_static(
+                self.path("world").as_str(),
+                &rerun::Transform3D::from_translation(self.world_offset),
+            )?;
+        }
         // Leg capsules: shape and names once; poses and colours per step.
         rec.log_static(
             self.path("world/legs").as_str(),
@@ -353,10 +429,7 @@ impl AntLogger {
         )?;
         let mut text = format!(
             "**checkpoint** {}  \n**encoder** {}  \n**condition** {}  \n**seed** {}",
-            meta.checkpoint,
-            meta.encoder,
-            env.condition(),
-            meta.seed
+            meta.checkpoint, meta.encoder, meta.condition, meta.seed
         );
         if let Some(out) = outcome {
             text += &format!(
@@ -532,11 +605,7 @@ impl AntLogger {
                             .with_colors(trail.iter().map(|(_, c)| *c)),
                     )?;
                 }
-                let predicted: Vec<f64> = probe
-                    .joint_probes
-                    .iter()
-                    .map(|jp| jp.probabilities(&z64).last().copied().unwrap_or(0.0))
-                    .collect();
+                let predicted = probe.joint_damage_probabilities(z);
                 let truth: Vec<f64> = (0..N_ACTUATORS)
                     .map(|i| f64::from(u8::from(damage.triggered()[i] && damage.scale()[i] < 1.0)))
                     .collect();
@@ -555,6 +624,8 @@ impl AntLogger {
 pub struct EpisodeMeta {
     pub checkpoint: String,
     pub encoder: String,
+    /// The condition as a person chose it (`manual` is not an env condition).
+    pub condition: String,
     pub seed: u64,
 }
 
@@ -575,185 +646,4 @@ fn geom_pose(
         Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32),
         Quat::from_mat3(&rotation).normalize(),
     )
-}
-
-/// Who acts in a recorded episode.
-pub enum Actor {
-    Checkpoint {
-        dir: PathBuf,
-        policy: Box<crate::policy::Policy>,
-    },
-    Builtin(crate::rollout::BuiltinPolicy),
-}
-
-impl Actor {
-    fn label(&self) -> String {
-        match self {
-            Actor::Checkpoint { dir, .. } => crate::eval::model_label(dir),
-            Actor::Builtin(p) => format!("{p:?}").to_lowercase(),
-        }
-    }
-    fn encoder(&self) -> String {
-        match self {
-            Actor::Checkpoint { policy, .. } => policy.net().encoder.to_string(),
-            Actor::Builtin(_) => "none (built-in policy)".into(),
-        }
-    }
-}
-
-/// What `gaitscope record` does.
-pub struct RecordOptions {
-    pub actors: Vec<Actor>,
-    pub config: crate::config::GaitConfig,
-    pub episodes: usize,
-    pub seed: u64,
-    pub sink: Sink,
-}
-
-/// Outcome of a recording.
-pub struct RecordSummary {
-    pub steps: u64,
-    pub episodes: usize,
-    pub interrupted: bool,
-    pub storage: Option<rerun::sink::MemorySinkStorage>,
-}
-
-#[derive(Debug, thiserror::Error)]
-pub enum RecordError {
-    #[error(transparent)]
-    Telemetry(#[from] TelemetryError),
-    #[error(transparent)]
-    Env(#[from] crate::env::EnvError),
-    #[error(transparent)]
-    Probe(#[from] crate::probe::ProbeError),
-    #[error("policy inference failed: {0}")]
-    Policy(#[from] candle_core::Error),
-}
-
-/// Runs `episodes` episodes per actor, all actors in lockstep on the same seeds (episode k uses
-/// seed + k), logging every step. Stops early, with everything flushed, when `stop` is set.
-pub fn record(
-    opts: RecordOptions,
-    stop: &std::sync::atomic::AtomicBool,
-) -> Result<RecordSummary, RecordError> {
-    let mut roots: Vec<String> = Vec::new();
-    for actor in &opts.actors {
-        let mut root = if opts.actors.len() == 1 {
-            "ant".to_string()
-        } else {
-            actor.label()
-        };
-        while roots.contains(&root) {
-            root.push('_');
-        }
-        roots.push(root);
-    }
-    let recording_id = format!(
-        "gaitscope-{}-seed{}-{}",
-        roots.join("-"),
-        opts.seed,
-        opts.episodes
-    );
-    let (rec, storage) = open(&opts.sink, &recording_id, &roots)?;
-    let mut lanes = Vec::new();
-    for (actor, root) in opts.actors.iter().zip(&roots) {
-        let mut config = opts.config.clone();
-        if let Actor::Checkpoint { policy, .. } = actor {
-            // The model's own task settings, with the caller's condition and step limit.
-            let trained = &policy.meta.env;
-            config = crate::config::GaitConfig {
-                damage: crate::config::DamageConfig {
-                    condition: config.damage.condition,
-                    ..trained.damage.clone()
-                },
-                env: crate::config::EnvConfig {
-                    max_episode_steps: config.env.max_episode_steps,
-                    ..trained.env.clone()
-                },
-                context: trained.context.clone(),
-            };
-        }
-        let env = AntEnv::new(config, opts.seed)?;
-        let probe = match actor {
-            Actor::Checkpoint { dir, .. } if dir.join(crate::probe::PROBE_FILE).exists() => {
-                Some(crate::probe::ProbeFile::load(dir)?)
-            }
-            _ => None,
-        };
-        let logger = AntLogger::new(rec.clone(), root, &env, probe);
-        let len = match actor {
-            Actor::Checkpoint { policy, .. } => policy.net().context_len,
-            Actor::Builtin(_) => 1,
-        };
-        lanes.push((env, logger, crate::window::ContextWindow::new(len)));
-    }
-    let mut global_step = 0u64;
-    let mut episodes_done = 0;
-    let mut interrupted = false;
-    'episodes: for k in 0..opts.episodes {
-        let seed = opts.seed.wrapping_add(k as u64);
-        let mut obs = Vec::new();
-        let mut rngs = Vec::new();
-        let metas: Vec<EpisodeMeta> = opts
-            .actors
-            .iter()
-            .map(|actor| EpisodeMeta {
-                checkpoint: actor.label(),
-                encoder: actor.encoder(),
-                seed,
-            })
-            .collect();
-        for ((env, logger, window), meta) in lanes.iter_mut().zip(&metas) {
-            obs.push(env.reset_with_seed(seed));
-            window.clear();
-            logger.set_time(global_step, k as u64);
-            logger.log_episode(meta, env, None)?;
-            rngs.push(crate::rollout::policy_rng(seed));
-        }
-        let mut done = vec![false; lanes.len()];
-        while !done.iter().all(|&d| d) {
-            if stop.load(std::sync::atomic::Ordering::Relaxed) {
-                interrupted = true;
-                break 'episodes;
-            }
-            global_step += 1;
-            for (i, ((env, logger, window), actor)) in
-                lanes.iter_mut().zip(&opts.actors).enumerate()
-            {
-                if done[i] {
-                    continue;
-                }
-                let (action, z) = match actor {
-                    Actor::Checkpoint { policy, .. } => {
-                        let d = policy.act_one(
-                            &obs[i],
-                            window,
-                            crate::policy::ActionMode::Deterministic,
-                            None,
-                        )?;
-                        (d.action, d.z)
-                    }
-                    Actor::Builtin(p) => (p.act(&mut rngs[i]).to_vec(), None),
-                };
-                let out = env.step(&action)?;
-                window.push(&obs[i], &action);
-                logger.set_time(global_step, k as u64);
-                logger.log_step(env, &out, z.as_deref())?;
-                obs[i] = out.obs;
-                if out.done() {
-                    done[i] = true;
-                    logger.log_episode(&metas[i], env, Some(&out))?;
-                }
-            }
-        }
-        episodes_done += 1;
-    }
-    rec.flush_blocking()
-        .map_err(|e| TelemetryError::Flush(e.to_string()))?;
-    Ok(RecordSummary {
-        steps: global_step,
-        episodes: episodes_done,
-        interrupted,
-        storage,
-    })
 }

@@ -1,0 +1,483 @@
+//! The control panel: a small egui window that sends [`Command`]s and shows the latest
+//! [`Snapshot`]. It never touches the simulation directly.
+
+use std::path::PathBuf;
+use std::sync::mpsc::Sender;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use eframe::egui::{self, Color32, RichText};
+
+use super::{Command, LiveCondition, MAX_SPEED, MIN_SPEED, PanelStats, SimHandle, Slot, Snapshot};
+use crate::damage::{JointOverride, JointState, N_ACTUATORS};
+use crate::policy::ActionMode;
+
+/// The fatigue bar spans 0 … 1.5 τ so the threshold sits at two thirds, with room to overshoot.
+const BAR_SPAN: f64 = 1.5;
+/// The panel polls the snapshot this often (it repaints only then, or on input).
+const REPAINT_EVERY: Duration = Duration::from_millis(33);
+
+/// The panel's side of the simulation: a command sender and a way to read the snapshot.
+#[derive(Clone)]
+pub struct SimLink {
+    tx: Sender<Command>,
+    read: Arc<dyn Fn() -> Snapshot + Send + Sync>,
+}
+
+impl SimLink {
+    pub fn new(tx: Sender<Command>, read: impl Fn() -> Snapshot + Send + Sync + 'static) -> Self {
+        Self {
+            tx,
+            read: Arc::new(read),
+        }
+    }
+}
+
+impl SimHandle {
+    /// A link for the panel (the handle stays with the caller, who shuts the thread down).
+    pub fn link(&self) -> SimLink {
+        let snapshot = self.shared_snapshot();
+        SimLink::new(self.sender(), move || {
+            snapshot.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        })
+    }
+}
+
+/// The control panel's state: what the person is editing, plus the latest snapshot.
+pub struct Panel {
+    link: SimLink,
+    view: Snapshot,
+    /// Checkpoint folders offered in the pickers.
+    checkpoints: Vec<PathBuf>,
+    /// The "any folder" field.
+    folder: String,
+    /// Set when the sim thread is gone (commands can no longer be delivered).
+    disconnected: bool,
+}
+
+impl Panel {
+    pub fn new(link: SimLink, checkpoints: Vec<PathBuf>) -> Self {
+        let view = (link.read)();
+        Self {
+            link,
+            view,
+            checkpoints,
+            folder: String::new(),
+            disconnected: false,
+        }
+    }
+
+    /// The snapshot the panel last drew.
+    pub fn view(&self) -> &Snapshot {
+        &self.view
+    }
+
+    fn send(&mut self, command: Command) {
+        if self.link.tx.send(command).is_err() {
+            self.disconnected = true;
+        }
+    }
+
+    /// Draws the whole panel (also what the headless tests drive).
+    pub fn ui(&mut self, ui: &mut egui::Ui) {
+        self.view = (self.link.read)();
+        if ui.input(|i| i.key_pressed(egui::Key::Space)) {
+            let c = if self.view.paused {
+                Command::Resume
+            } else {
+                Command::Pause
+            };
+            self.send(c);
+        }
+        self.status_line(ui);
+        ui.separator();
+        self.policy_section(ui);
+        ui.separator();
+        self.episode_section(ui);
+        ui.separator();
+        self.joints_section(ui);
+        ui.separator();
+        self.readouts(ui);
+        if let Some(message) = &self.view.message {
+            ui.colored_label(Color32::from_rgb(230, 90, 60), message);
+        }
+        if self.disconnected || self.view.stopped {
+            ui.colored_label(Color32::RED, "the simulation has stopped");
+        }
+    }
+
+    fn status_line(&self, ui: &mut egui::Ui) {
+        let v = &self.view;
+        ui.horizontal(|ui| {
+            ui.heading("gaitscope live");
+            let state = if v.paused { "paused" } else { "running" };
+            ui.label(format!(
+                "{state} · {:.0} / {:.0} steps/s",
+                v.steps_per_s, v.target_steps_per_s
+            ));
+        });
+    }
+
+    fn policy_section(&mut self, ui: &mut egui::Ui) {
+        let main = self.view.lanes.first().and_then(|l| l.checkpoint.clone());
+        ui.horizontal(|ui| {
+            ui.label("Model");
+            if let Some(dir) = self.pick_checkpoint(ui, "model", main.as_ref()) {
+                self.send(Command::Load {
+                    slot: Slot::Main,
+                    dir,
+                });
+            }
+        });
+        ui.horizontal(|ui| {
+            ui.label("Folder");
+            ui.add(
+                egui::TextEdit::singleline(&mut self.folder)
+                    .hint_text("any checkpoint folder")
+                    .desired_width(200.0),
+            );
+            let folder = PathBuf::from(self.folder.trim());
+            if ui.button("Load").clicked() && !self.folder.trim().is_empty() {
+                self.send(Command::Load {
+                    slot: Slot::Main,
+                    dir: folder.clone(),
+                });
+            }
+            if ui.button("Compare").clicked() && !self.folder.trim().is_empty() {
+                self.send(Command::Load {
+                    slot: Slot::Compare,
+                    dir: folder,
+                });
+            }
+        });
+        ui.horizontal(|ui| {
+            ui.label("Actions");
+            let mut mode = self.view.mode;
+            ui.radio_value(&mut mode, ActionMode::Deterministic, "deterministic");
+            ui.radio_value(&mut mode, ActionMode::Sampled, "sampled");
+            if mode != self.view.mode {
+                self.send(Command::SetActionMode(mode));
+            }
+        });
+        ui.horizontal(|ui| {
+            let mut compare = self.view.compare;
+            if ui.checkbox(&mut compare, "Side by side with").changed() {
+                self.send(Command::SetCompare(compare));
+            }
+            let current = self.view.compare_checkpoint.clone();
+            if let Some(dir) = self.pick_checkpoint(ui, "compare", current.as_ref()) {
+                self.send(Command::Load {
+                    slot: Slot::Compare,
+                    dir,
+                });
+            }
+        });
+    }
+
+    /// A combo box of the known checkpoints; returns a newly picked one.
+    fn pick_checkpoint(
+        &self,
+        ui: &mut egui::Ui,
+        id: &str,
+        current: Option<&PathBuf>,
+    ) -> Option<PathBuf> {
+        let name = |p: &PathBuf| crate::eval::model_label(p);
+        let mut picked = None;
+        egui::ComboBox::from_id_salt(id)
+            .selected_text(current.map_or_else(|| "none".to_string(), name))
+            .width(200.0)
+            .show_ui(ui, |ui| {
+                for dir in &self.checkpoints {
+                    let selected = current == Some(dir);
+                    if ui.selectable_label(selected, name(dir)).clicked() && !selected {
+                        picked = Some(dir.clone());
+                    }
+                }
+            });
+        picked
+    }
+
+    fn episode_section(&mut self, ui: &mut egui::Ui) {
+        let v = self.view.clone();
+        ui.horizontal(|ui| {
+            ui.label("Condition");
+            let mut condition = v.condition;
+            egui::ComboBox::from_id_salt("condition")
+                .selected_text(condition.name())
+                .show_ui(ui, |ui| {
+                    for c in LiveCondition::ALL {
+                        ui.selectable_value(&mut condition, c, c.name());
+                    }
+                });
+            if condition != v.condition {
+                self.send(Command::SetCondition(condition));
+            }
+            ui.label("Seed");
+            let mut seed = v.seed;
+            if ui.add(egui::DragValue::new(&mut seed)).changed() {
+                self.send(Command::SetSeed(seed));
+            }
+            ui.label("Step limit");
+            let mut limit = v.step_limit;
+            if ui
+                .add(egui::DragValue::new(&mut limit).range(1..=100_000))
+                .changed()
+            {
+                self.send(Command::SetStepLimit(limit));
+            }
+        });
+        ui.horizontal(|ui| {
+            if ui.button("Reset").clicked() {
+                self.send(Command::Reset);
+            }
+            let (label, command) = if v.paused {
+                ("Resume", Command::Resume)
+            } else {
+                ("Pause", Command::Pause)
+            };
+            if ui.button(label).clicked() {
+                self.send(command);
+            }
+            if ui
+                .add_enabled(v.paused, egui::Button::new("Step"))
+                .clicked()
+            {
+                self.send(Command::StepOnce);
+            }
+            ui.label("Speed");
+            let mut speed = v.speed;
+            let slider = egui::Slider::new(&mut speed, MIN_SPEED..=MAX_SPEED)
+                .logarithmic(true)
+                .suffix("×")
+                .max_decimals(2);
+            if ui.add(slider).changed() {
+                self.send(Command::SetSpeed(speed));
+            }
+        });
+        ui.label(
+            RichText::new("Condition, seed and step limit apply at the next reset.")
+                .small()
+                .weak(),
+        );
+    }
+
+    fn joints_section(&mut self, ui: &mut egui::Ui) {
+        let Some(lane) = self.view.lanes.first().cloned() else {
+            ui.label("no model loaded");
+            return;
+        };
+        ui.label(RichText::new(format!("Joints — fatigue, τ = {:.0}", lane.threshold)).strong());
+        egui::Grid::new("joints")
+            .num_columns(6)
+            .spacing([6.0, 4.0])
+            .striped(true)
+            .show(ui, |ui| {
+                ui.spacing_mut().slider_width = 80.0;
+                for i in 0..N_ACTUATORS {
+                    ui.label(&lane.joint_names[i]);
+                    fatigue_bar(ui, lane.fatigue[i], lane.threshold, lane.states[i]);
+                    let (text, color) = state_text(lane.states[i]);
+                    ui.colored_label(color, text);
+                    let mut scale = lane.scale[i];
+                    let slider = egui::Slider::new(&mut scale, 0.0..=1.0)
+                        .max_decimals(2)
+                        .show_value(true);
+                    if ui.add(slider).changed() {
+                        self.send(Command::Override {
+                            actuator: i,
+                            change: JointOverride::SetScale(scale),
+                        });
+                    }
+                    if ui.button("fail now").clicked() {
+                        self.send(Command::Override {
+                            actuator: i,
+                            change: JointOverride::FailNow,
+                        });
+                    }
+                    if ui.button("heal").clicked() {
+                        self.send(Command::Override {
+                            actuator: i,
+                            change: JointOverride::Heal,
+                        });
+                    }
+                    ui.end_row();
+                }
+            });
+    }
+
+    fn readouts(&self, ui: &mut egui::Ui) {
+        let v = &self.view;
+        for lane in &v.lanes {
+            let triggered: Vec<&str> = (0..N_ACTUATORS)
+                .filter(|&i| lane.states[i] != JointState::Healthy)
+                .map(|i| lane.joint_names[i].as_str())
+                .collect();
+            ui.label(RichText::new(format!("{} ({})", lane.label, lane.encoder)).strong());
+            ui.label(format!(
+                "step {} / {} · goal distance {:.2} m · success {} · damaged joints {}{}",
+                lane.step,
+                v.step_limit,
+                lane.distance,
+                if lane.success { "yes" } else { "no" },
+                triggered.len(),
+                if triggered.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({})", triggered.join(", "))
+                }
+            ));
+            if let Some(p) = &lane.probe {
+                ui.horizontal_wrapped(|ui| {
+                    ui.label("probe on z, P(damaged):");
+                    let joints = p.iter().zip(&lane.damaged).zip(&lane.joint_names);
+                    for ((&prob, &damaged), name) in joints {
+                        let says = prob >= 0.5;
+                        let color = if says == damaged {
+                            Color32::from_rgb(80, 170, 90)
+                        } else {
+                            Color32::from_rgb(220, 80, 60)
+                        };
+                        let mark = if damaged { "■" } else { "□" };
+                        let word = |d: bool| if d { "damaged" } else { "healthy" };
+                        ui.colored_label(color, format!("{} {prob:.2}{mark}", short_name(name)))
+                            .on_hover_text(format!(
+                                "{name}: z says {} (p = {prob:.2}); truth: {}",
+                                word(says),
+                                word(damaged)
+                            ));
+                    }
+                });
+            }
+            if let Some(e) = &lane.last_event {
+                ui.label(RichText::new(format!("last event: {e}")).weak());
+            }
+        }
+        ui.label(
+            RichText::new(format!(
+                "episode {} · seed {} · recording step {}",
+                v.episodes, v.episode_seed, v.global_step
+            ))
+            .weak(),
+        );
+    }
+}
+
+fn short_name(joint: &str) -> String {
+    joint.replace("hip_", "h").replace("ankle_", "a")
+}
+
+fn state_text(state: JointState) -> (&'static str, Color32) {
+    match state {
+        JointState::Healthy => ("healthy", Color32::from_rgb(80, 170, 90)),
+        JointState::Triggered => ("triggered", Color32::from_rgb(220, 60, 50)),
+        JointState::Manual => ("manual", Color32::from_rgb(160, 90, 220)),
+    }
+}
+
+/// Fatigue as a bar over 0 … 1.5 τ, with the threshold marked; red once the joint is damaged.
+fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64, state: JointState) {
+    let size = egui::vec2(96.0, ui.spacing().interact_size.y * 0.8);
+    let (rect, response) = ui.allocate_exact_size(size, egui::Sense::hover());
+    let span = (threshold * BAR_SPAN).max(f64::EPSILON);
+    let frac = (fatigue / span).clamp(0.0, 1.0) as f32;
+    let painter = ui.painter();
+    painter.rect_filled(rect, 2.0, ui.visuals().extreme_bg_color);
+    let fill = match state {
+        JointState::Healthy if fatigue < threshold * 0.8 => Color32::from_rgb(90, 160, 90),
+        JointState::Healthy => Color32::from_rgb(230, 170, 40),
+        JointState::Triggered => Color32::from_rgb(210, 60, 50),
+        JointState::Manual => Color32::from_rgb(150, 80, 210),
+    };
+    let mut filled = rect;
+    filled.set_width(rect.width() * frac);
+    painter.rect_filled(filled, 2.0, fill);
+    let x = rect.left() + rect.width() * (1.0 / BAR_SPAN) as f32;
+    painter.line_segment(
+        [egui::pos2(x, rect.top()), egui::pos2(x, rect.bottom())],
+        egui::Stroke::new(2.0, ui.visuals().strong_text_color()),
+    );
+    painter.text(
+        rect.left_center() + egui::vec2(4.0, 0.0),
+        egui::Align2::LEFT_CENTER,
+        format!("{fatigue:.1}"),
+        egui::FontId::monospace(11.0),
+        ui.visuals().strong_text_color(),
+    );
+    response.on_hover_text(format!(
+        "fatigue {fatigue:.2}; the joint triggers at τ = {threshold:.1} (the mark)"
+    ));
+}
+
+/// How the panel window opens.
+pub struct PanelOptions {
+    pub checkpoints: Vec<PathBuf>,
+    /// Close after this long (scripted runs and measurements).
+    pub exit_after: Option<Duration>,
+}
+
+struct LiveApp {
+    panel: Panel,
+    started: Instant,
+    exit_after: Option<Duration>,
+    cpu_total: f64,
+    stats: Arc<Mutex<PanelStats>>,
+}
+
+impl eframe::App for LiveApp {
+    fn ui(&mut self, ui: &mut egui::Ui, frame: &mut eframe::Frame) {
+        let elapsed = self.started.elapsed();
+        {
+            let mut stats = self.stats.lock().unwrap_or_else(|p| p.into_inner());
+            stats.frames += 1;
+            stats.seconds = elapsed.as_secs_f64();
+            self.cpu_total += f64::from(frame.info().cpu_usage.unwrap_or(0.0));
+            stats.mean_frame_cpu_ms = 1000.0 * self.cpu_total / stats.frames as f64;
+        }
+        egui::CentralPanel::default().show(ui, |ui| {
+            egui::ScrollArea::vertical().show(ui, |ui| self.panel.ui(ui));
+        });
+        if self.exit_after.is_some_and(|limit| elapsed >= limit) {
+            ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
+        }
+        ui.ctx().request_repaint_after(REPAINT_EVERY);
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PanelError {
+    #[error(
+        "could not open the control panel window: {0}. Is the display reachable (DISPLAY / \
+         WAYLAND_DISPLAY)? Headless, use `gaitscope record` instead"
+    )]
+    Window(String),
+}
+
+/// Opens the panel window and runs it until it is closed; returns its frame statistics.
+pub fn run_panel(link: SimLink, options: PanelOptions) -> Result<PanelStats, PanelError> {
+    let stats = Arc::new(Mutex::new(PanelStats::default()));
+    let native = eframe::NativeOptions {
+        viewport: egui::ViewportBuilder::default()
+            .with_title("gaitscope — live")
+            .with_inner_size([520.0, 1000.0])
+            .with_position([1400.0, 0.0]),
+        ..Default::default()
+    };
+    let app_stats = stats.clone();
+    let panel = Panel::new(link, options.checkpoints);
+    eframe::run_native(
+        "gaitscope live",
+        native,
+        Box::new(move |_cc| {
+            Ok(Box::new(LiveApp {
+                panel,
+                started: Instant::now(),
+                exit_after: options.exit_after,
+                cpu_total: 0.0,
+                stats: app_stats,
+            }))
+        }),
+    )
+    .map_err(|e| PanelError::Window(e.to_string()))?;
+    let stats = stats.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    Ok(stats)
+}

@@ -1,0 +1,581 @@
+//! The simulation thread: commands in, paced env steps, a snapshot out.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use rerun::RecordingStream;
+
+use super::{Command, LiveCondition, LiveError, MAX_SPEED, MIN_SPEED, Slot, live_specs};
+use crate::config::GaitConfig;
+use crate::damage::{ConditionChoice, JointState, N_ACTUATORS};
+use crate::policy::ActionMode;
+use crate::telemetry::{Actor, Lane, Session};
+
+/// How long a finished episode stays on screen before the next one starts (wall time).
+const HOLD_FINISHED: Duration = Duration::from_millis(1500);
+/// Behind schedule by more than this, the sim stops trying to catch up (it would only burst).
+const MAX_LAG: Duration = Duration::from_millis(250);
+/// While paused, the thread still wakes this often (to notice a closed panel).
+const IDLE_WAIT: Duration = Duration::from_millis(100);
+
+/// How a live session starts.
+#[derive(Debug, Clone)]
+pub struct LiveSetup {
+    pub checkpoint: PathBuf,
+    /// A second model, side by side from the start.
+    pub compare: Option<PathBuf>,
+    pub condition: LiveCondition,
+    pub seed: u64,
+    /// Multiple of real time (real time = 1 / dt env steps per second, 20 for the Ant).
+    pub speed: f64,
+    pub step_limit: usize,
+    pub mode: ActionMode,
+    pub paused: bool,
+    /// Env settings (model, weights); a checkpoint's own task settings take precedence.
+    pub config: GaitConfig,
+}
+
+impl LiveSetup {
+    /// Checks the settings and that the checkpoints load, before any window or viewer opens.
+    pub fn validate(&self) -> Result<(), LiveError> {
+        if !(self.speed.is_finite() && (MIN_SPEED..=MAX_SPEED).contains(&self.speed)) {
+            return Err(LiveError::BadSpeed(self.speed));
+        }
+        if self.step_limit == 0 {
+            return Err(LiveError::BadStepLimit);
+        }
+        for dir in std::iter::once(&self.checkpoint).chain(&self.compare) {
+            crate::policy::Policy::load(dir, None)?;
+        }
+        Ok(())
+    }
+}
+
+/// One model as the panel shows it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LaneView {
+    pub label: String,
+    pub root: String,
+    pub encoder: String,
+    pub checkpoint: Option<PathBuf>,
+    /// Env steps taken in this episode.
+    pub step: usize,
+    pub distance: f64,
+    pub success: bool,
+    pub done: bool,
+    pub joint_names: [String; N_ACTUATORS],
+    pub fatigue: [f64; N_ACTUATORS],
+    pub threshold: f64,
+    pub states: [JointState; N_ACTUATORS],
+    pub scale: [f64; N_ACTUATORS],
+    /// P(joint damaged) from the probe on z, when the checkpoint has `probe.json`.
+    pub probe: Option<[f64; N_ACTUATORS]>,
+    /// Whether each joint is effectively damaged (triggered with a scale below 1): the probe's truth.
+    pub damaged: [bool; N_ACTUATORS],
+    /// The latest step's commanded and applied (scaled) actions.
+    pub commanded: [f64; N_ACTUATORS],
+    pub applied: [f64; N_ACTUATORS],
+    pub events: usize,
+    pub last_event: Option<String>,
+}
+
+impl LaneView {
+    fn of(lane: &Lane) -> Self {
+        let env = lane.env();
+        let damage = env.damage();
+        let states = std::array::from_fn(|i| damage.joint_state(i));
+        let damaged = std::array::from_fn(|i| damage.triggered()[i] && damage.scale()[i] < 1.0);
+        let probe = match (lane.probe(), lane.z()) {
+            (Some(probe), Some(z)) => {
+                let p = probe.joint_damage_probabilities(z);
+                (p.len() == N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
+            }
+            _ => None,
+        };
+        let last = lane.last();
+        Self {
+            label: lane.actor().label(),
+            root: lane.root().to_string(),
+            encoder: lane.actor().encoder(),
+            checkpoint: lane.actor().checkpoint_dir().map(|d| d.to_path_buf()),
+            step: env.steps(),
+            distance: last.map_or_else(|| env.goal_distance(), |o| o.distance),
+            success: last.is_some_and(|o| o.success),
+            done: lane.is_done(),
+            joint_names: damage.joint_names().clone(),
+            fatigue: *damage.fatigue(),
+            threshold: damage.config().threshold,
+            states,
+            scale: *damage.scale(),
+            probe,
+            damaged,
+            commanded: last.map_or([0.0; N_ACTUATORS], |o| o.commanded_action),
+            applied: last.map_or([0.0; N_ACTUATORS], |o| o.applied_action),
+            events: damage.events().len(),
+            last_event: damage.events().last().map(|e| match e.kind {
+                crate::damage::DamageEventKind::Trigger => {
+                    format!("step {}: {} triggered", e.step, e.joint)
+                }
+                crate::damage::DamageEventKind::Override { change } => {
+                    format!("step {}: {} {:?}", e.step, e.joint, change)
+                }
+            }),
+        }
+    }
+
+    pub fn n_triggered(&self) -> usize {
+        self.states
+            .iter()
+            .filter(|s| **s != JointState::Healthy)
+            .count()
+    }
+}
+
+/// What the panel shows: the simulation's state after the latest step or command.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Snapshot {
+    pub paused: bool,
+    pub speed: f64,
+    /// Condition, seed and step limit the next reset uses.
+    pub condition: LiveCondition,
+    pub seed: u64,
+    pub step_limit: usize,
+    pub mode: ActionMode,
+    pub compare: bool,
+    /// The second model's folder, once one is loaded.
+    pub compare_checkpoint: Option<PathBuf>,
+    pub episode_seed: u64,
+    pub episodes: u64,
+    /// The recording's `step` timeline.
+    pub global_step: u64,
+    pub lanes: Vec<LaneView>,
+    /// Env steps per second over the last second, and what the speed asks for.
+    pub steps_per_s: f64,
+    pub target_steps_per_s: f64,
+    /// The last problem (a checkpoint that did not load, a rejected change), for the panel.
+    pub message: Option<String>,
+    /// The simulation thread has stopped.
+    pub stopped: bool,
+}
+
+/// How far the simulation kept up with real time at each speed it ran at.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SpeedReport {
+    pub speed: f64,
+    pub seconds: f64,
+    pub steps: u64,
+    pub target_steps_per_s: f64,
+}
+
+impl SpeedReport {
+    pub fn steps_per_s(&self) -> f64 {
+        self.steps as f64 / self.seconds.max(1e-9)
+    }
+    /// Achieved over asked-for rate (1.0 = keeps up).
+    pub fn keeps_up(&self) -> f64 {
+        self.steps_per_s() / self.target_steps_per_s
+    }
+}
+
+/// What a finished live session did.
+#[derive(Debug, Clone, Default)]
+pub struct SimReport {
+    pub steps: u64,
+    pub episodes: u64,
+    /// Time spent running (not paused, not holding a finished episode) per speed.
+    pub speeds: Vec<SpeedReport>,
+}
+
+/// The panel's end of the simulation thread.
+pub struct SimHandle {
+    tx: Sender<Command>,
+    snapshot: Arc<Mutex<Snapshot>>,
+    thread: Option<JoinHandle<Result<SimReport, LiveError>>>,
+}
+
+impl SimHandle {
+    /// Loads the checkpoints (errors surface here, before any window opens), then starts the
+    /// simulation thread streaming to `rec`.
+    pub fn spawn(rec: RecordingStream, setup: LiveSetup) -> Result<Self, LiveError> {
+        if !(setup.speed.is_finite() && (MIN_SPEED..=MAX_SPEED).contains(&setup.speed)) {
+            return Err(LiveError::BadSpeed(setup.speed));
+        }
+        if setup.step_limit == 0 {
+            return Err(LiveError::BadStepLimit);
+        }
+        let main = Actor::load(&setup.checkpoint)?;
+        let compare = setup.compare.as_deref().map(Actor::load).transpose()?;
+        let compare_on = compare.is_some();
+        let mut config = setup.config.clone();
+        config.env.max_episode_steps = setup.step_limit;
+        config.damage.condition = ConditionChoice::Fixed(setup.condition.env_condition());
+        let mut session = Session::new(rec, live_specs(main, compare), config)?;
+        session.set_action_mode(setup.mode);
+        session.set_fatigue_triggers(setup.condition.fatigue_triggers());
+        session.start_episode(setup.seed)?;
+
+        let dt = session.lanes()[0].env().dt();
+        let sim = Sim {
+            session,
+            spare: None,
+            compare_dir: setup.compare.clone(),
+            compare_on,
+            condition: setup.condition,
+            seed: setup.seed,
+            step_limit: setup.step_limit,
+            mode: setup.mode,
+            paused: setup.paused,
+            speed: setup.speed,
+            dt,
+            step_once: false,
+            over_since: None,
+            message: None,
+            recent: Vec::new(),
+            speeds: BTreeMap::new(),
+        };
+        let snapshot = Arc::new(Mutex::new(sim.snapshot()));
+        let (tx, rx) = mpsc::channel();
+        let shared = snapshot.clone();
+        let thread = std::thread::Builder::new()
+            .name("gaitscope-sim".into())
+            .spawn(move || sim.run(rx, shared))
+            .map_err(|_| LiveError::SimThreadPanicked)?;
+        Ok(Self {
+            tx,
+            snapshot,
+            thread: Some(thread),
+        })
+    }
+
+    /// Queues a command; false once the simulation thread has stopped.
+    pub fn send(&self, command: Command) -> bool {
+        self.tx.send(command).is_ok()
+    }
+
+    pub fn sender(&self) -> Sender<Command> {
+        self.tx.clone()
+    }
+
+    /// The snapshot the thread publishes into.
+    pub fn shared_snapshot(&self) -> Arc<Mutex<Snapshot>> {
+        self.snapshot.clone()
+    }
+
+    /// The latest state (a copy; the lock is held only to clone).
+    pub fn snapshot(&self) -> Snapshot {
+        lock(&self.snapshot).clone()
+    }
+
+    /// Waits (up to `timeout`) until `ready` holds for the snapshot; returns the last one seen.
+    pub fn wait_for(&self, timeout: Duration, ready: impl Fn(&Snapshot) -> bool) -> Snapshot {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let s = self.snapshot();
+            if ready(&s) || s.stopped || Instant::now() >= deadline {
+                return s;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+
+    /// Stops the thread, flushes the stream and reports.
+    pub fn shutdown(mut self) -> Result<SimReport, LiveError> {
+        let _ = self.tx.send(Command::Quit);
+        match self.thread.take().map(|t| t.join()) {
+            Some(Ok(result)) => result,
+            Some(Err(_)) => Err(LiveError::SimThreadPanicked),
+            None => Ok(SimReport::default()),
+        }
+    }
+}
+
+impl Drop for SimHandle {
+    fn drop(&mut self) {
+        if let Some(thread) = self.thread.take() {
+            let _ = self.tx.send(Command::Quit);
+            let _ = thread.join();
+        }
+    }
+}
+
+fn lock(m: &Mutex<Snapshot>) -> MutexGuard<'_, Snapshot> {
+    // A panic elsewhere while holding the lock leaves a valid snapshot: keep using it.
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// The simulation thread's state.
+struct Sim {
+    session: Session,
+    /// The second model while side-by-side is off (kept loaded so it can be switched back on).
+    spare: Option<Actor>,
+    compare_dir: Option<PathBuf>,
+    compare_on: bool,
+    condition: LiveCondition,
+    seed: u64,
+    step_limit: usize,
+    mode: ActionMode,
+    paused: bool,
+    speed: f64,
+    dt: f64,
+    step_once: bool,
+    /// When every model's episode ended (the next starts after [`HOLD_FINISHED`]).
+    over_since: Option<Instant>,
+    message: Option<String>,
+    /// Wall times of the steps in the last second (the achieved rate).
+    recent: Vec<Instant>,
+    /// Per speed (in 1/1000 ×): running seconds and steps.
+    speeds: BTreeMap<u64, (f64, u64)>,
+}
+
+impl Sim {
+    fn target_rate(&self) -> f64 {
+        self.speed / self.dt
+    }
+
+    fn run(
+        mut self,
+        rx: Receiver<Command>,
+        shared: Arc<Mutex<Snapshot>>,
+    ) -> Result<SimReport, LiveError> {
+        let mut next_tick = Instant::now();
+        let mut last_tick = Instant::now();
+        loop {
+            // Commands first; wait for one until the next step is due (or idle while paused).
+            let running = !self.paused || self.step_once;
+            let wait = if running {
+                next_tick.saturating_duration_since(Instant::now())
+            } else {
+                IDLE_WAIT
+            };
+            match rx.recv_timeout(wait) {
+                Ok(Command::Quit) | Err(RecvTimeoutError::Disconnected) => break,
+                Ok(command) => {
+                    self.handle(command);
+                    *lock(&shared) = self.snapshot();
+                    continue;
+                }
+                Err(RecvTimeoutError::Timeout) => {}
+            }
+            if self.paused && !self.step_once {
+                next_tick = Instant::now();
+                last_tick = next_tick;
+                continue;
+            }
+            let stepping_once = std::mem::take(&mut self.step_once);
+            let now = Instant::now();
+            let since_last_tick = (now - last_tick).min(MAX_LAG);
+            last_tick = now;
+            match self.advance(stepping_once) {
+                // Paced running time per speed: a single step or a finished episode on show
+                // is not.
+                Ok(true) if !stepping_once => {
+                    let key = (self.speed * 1000.0).round() as u64;
+                    let entry = self.speeds.entry(key).or_insert((0.0, 0));
+                    entry.0 += since_last_tick.as_secs_f64();
+                    entry.1 += 1;
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    // Keep the panel alive: pause and say what went wrong.
+                    self.paused = true;
+                    self.message = Some(format!("simulation paused: {e}"));
+                }
+            }
+            *lock(&shared) = self.snapshot();
+            next_tick += Duration::from_secs_f64(1.0 / self.target_rate());
+            if Instant::now().saturating_duration_since(next_tick) > MAX_LAG {
+                next_tick = Instant::now();
+            }
+        }
+        let flushed = self.session.flush();
+        let mut snapshot = self.snapshot();
+        snapshot.stopped = true;
+        *lock(&shared) = snapshot;
+        flushed?;
+        Ok(SimReport {
+            steps: self.session.global_step(),
+            episodes: self.session.episodes_started(),
+            speeds: self
+                .speeds
+                .iter()
+                .map(|(&k, &(seconds, steps))| SpeedReport {
+                    speed: k as f64 / 1000.0,
+                    seconds,
+                    steps,
+                    target_steps_per_s: k as f64 / 1000.0 / self.dt,
+                })
+                .collect(),
+        })
+    }
+
+    /// One tick: a step, or the next episode once a finished one has been shown long enough.
+    /// Returns whether an env step was taken.
+    fn advance(&mut self, stepping_once: bool) -> Result<bool, LiveError> {
+        if self.session.is_over() {
+            let since = *self.over_since.get_or_insert_with(Instant::now);
+            if stepping_once || since.elapsed() >= HOLD_FINISHED {
+                self.seed = self.seed.wrapping_add(1);
+                self.new_episode()?;
+            }
+            return Ok(false);
+        }
+        self.session.step()?;
+        let now = Instant::now();
+        self.recent.push(now);
+        self.recent
+            .retain(|t| now.duration_since(*t) < Duration::from_secs(1));
+        Ok(true)
+    }
+
+    fn new_episode(&mut self) -> Result<(), LiveError> {
+        let mut config = self.session.config().clone();
+        config.env.max_episode_steps = self.step_limit;
+        config.damage.condition = ConditionChoice::Fixed(self.condition.env_condition());
+        self.session.set_config(config);
+        self.session
+            .set_fatigue_triggers(self.condition.fatigue_triggers());
+        self.session.start_episode(self.seed)?;
+        self.over_since = None;
+        Ok(())
+    }
+
+    fn handle(&mut self, command: Command) {
+        self.message = None;
+        let result = match command {
+            Command::Override { actuator, change } => self
+                .session
+                .apply_override(actuator, change)
+                .map_err(LiveError::from),
+            Command::SetCondition(c) => {
+                self.condition = c;
+                Ok(())
+            }
+            Command::SetSeed(s) => {
+                self.seed = s;
+                Ok(())
+            }
+            Command::SetStepLimit(n) => {
+                if n == 0 {
+                    Err(LiveError::BadStepLimit)
+                } else {
+                    self.step_limit = n;
+                    Ok(())
+                }
+            }
+            Command::Reset => self.new_episode(),
+            Command::Pause => {
+                self.paused = true;
+                Ok(())
+            }
+            Command::Resume => {
+                self.paused = false;
+                Ok(())
+            }
+            Command::StepOnce => {
+                self.step_once = true;
+                Ok(())
+            }
+            Command::SetSpeed(s) => {
+                if s.is_finite() {
+                    self.speed = s.clamp(MIN_SPEED, MAX_SPEED);
+                    Ok(())
+                } else {
+                    Err(LiveError::BadSpeed(s))
+                }
+            }
+            Command::SetActionMode(mode) => {
+                self.mode = mode;
+                self.session.set_action_mode(mode);
+                Ok(())
+            }
+            Command::Load { slot, dir } => self.load(slot, dir),
+            Command::SetCompare(on) => self.set_compare(on),
+            Command::Quit => Ok(()),
+        };
+        if let Err(e) = result {
+            self.message = Some(e.to_string());
+        }
+    }
+
+    /// Replaces a model; the old one stays if the new one does not load.
+    fn load(&mut self, slot: Slot, dir: PathBuf) -> Result<(), LiveError> {
+        let actor = Actor::load(&dir)?;
+        let mut actors = self.session.take_actors();
+        match slot {
+            Slot::Main if actors.is_empty() => actors.push(actor),
+            Slot::Main => actors[0] = actor,
+            Slot::Compare => {
+                self.compare_dir = Some(dir);
+                self.compare_on = true;
+                actors.truncate(1);
+                actors.push(actor);
+            }
+        }
+        self.rebuild(actors)
+    }
+
+    fn set_compare(&mut self, on: bool) -> Result<(), LiveError> {
+        if on == self.compare_on {
+            return Ok(());
+        }
+        let actors = if on {
+            let second = match (self.spare.take(), &self.compare_dir) {
+                (Some(actor), _) => actor,
+                (None, Some(dir)) => Actor::load(dir)?,
+                (None, None) => {
+                    self.message = Some("pick a checkpoint to compare with first".into());
+                    return Ok(());
+                }
+            };
+            let mut actors = self.session.take_actors();
+            actors.truncate(1);
+            actors.push(second);
+            actors
+        } else {
+            let mut actors = self.session.take_actors();
+            if actors.len() > 1 {
+                self.spare = actors.pop();
+            }
+            actors
+        };
+        self.compare_on = on;
+        self.rebuild(actors)
+    }
+
+    fn rebuild(&mut self, actors: Vec<Actor>) -> Result<(), LiveError> {
+        let mut actors = actors.into_iter();
+        let Some(main) = actors.next() else {
+            return Ok(());
+        };
+        self.session
+            .replace_lanes(live_specs(main, actors.next()))?;
+        self.session.set_action_mode(self.mode);
+        self.new_episode()
+    }
+
+    fn snapshot(&self) -> Snapshot {
+        let lanes: Vec<LaneView> = self.session.lanes().iter().map(LaneView::of).collect();
+        Snapshot {
+            paused: self.paused,
+            speed: self.speed,
+            condition: self.condition,
+            seed: self.seed,
+            step_limit: self.step_limit,
+            mode: self.mode,
+            compare: self.compare_on,
+            compare_checkpoint: self.compare_dir.clone(),
+            episode_seed: self.session.seed(),
+            episodes: self.session.episodes_started(),
+            global_step: self.session.global_step(),
+            lanes,
+            steps_per_s: self.recent.len() as f64,
+            target_steps_per_s: self.target_rate(),
+            message: self.message.clone(),
+            stopped: false,
+        }
+    }
+}

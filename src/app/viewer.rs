@@ -1,0 +1,245 @@
+//! The stock Rerun viewer: finding a binary whose version matches our SDK, spawning it, and
+//! opening recordings in it. We never compile the viewer (see README: `make viewer`).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Environment variable naming a viewer binary to use.
+pub const VIEWER_ENV: &str = "GAITSCOPE_RERUN";
+/// Where `scripts/setup.sh --viewer` unpacks the viewer from PyPI's rerun-sdk wheel.
+pub const BUNDLED_VIEWER: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/.deps/rerun/rerun");
+/// Window size the viewer is spawned with (fits next to the panel on a 1920×1080 screen).
+pub const VIEWER_WINDOW_SIZE: &str = "1400x1000";
+
+const HOW_TO_GET: &str = "get the matching viewer with `make viewer` (unpacks rerun from PyPI's \
+rerun-sdk wheel into .deps/rerun/) or `pip install rerun-sdk==VERSION`, or point --viewer / \
+GAITSCOPE_RERUN at one";
+
+#[derive(Debug, thiserror::Error)]
+pub enum ViewerError {
+    #[error("no Rerun viewer found (looked at {searched}); {how}", how = how_to_get())]
+    NotFound { searched: String },
+    #[error("the Rerun viewer at {path} is version {found}, but gaitscope logs with the Rerun SDK {expected} (the major.minor versions must match); {how}", how = how_to_get())]
+    VersionMismatch {
+        path: PathBuf,
+        found: String,
+        expected: String,
+    },
+    #[error("cannot run the Rerun viewer at {path}: {reason}")]
+    NotRunnable { path: PathBuf, reason: String },
+    #[error(
+        "no display: {what} needs a window (DISPLAY and WAYLAND_DISPLAY are unset). Headless, use \
+         `gaitscope record --checkpoint DIR --out FILE.rrd` and open the file on a machine with a \
+         display (`gaitscope view FILE.rrd`), or run under Xvfb (scripts/screenshot-live.sh)"
+    )]
+    NoDisplay { what: &'static str },
+    #[error("spawning the Rerun viewer: {0}")]
+    Spawn(String),
+    #[error("{path} is not a Rerun recording: {reason}")]
+    NotARecording { path: PathBuf, reason: String },
+}
+
+fn how_to_get() -> String {
+    HOW_TO_GET.replace("VERSION", &sdk_version())
+}
+
+/// The Rerun SDK version we log with, e.g. `0.36.3`.
+pub fn sdk_version() -> String {
+    rerun::build_info().version.to_string()
+}
+
+/// `rerun --version` prints `rerun-cli 0.36.3 (features…) …`: the version is the second word.
+pub fn parse_viewer_version(output: &str) -> Option<(u64, u64, u64)> {
+    let word = output.split_whitespace().nth(1)?;
+    let mut parts = word.split(['.', '-', '+']).map(|p| p.parse::<u64>().ok());
+    Some((parts.next()??, parts.next()??, parts.next()??))
+}
+
+/// Rerun's own rule: viewer and SDK agree on major and minor.
+pub fn versions_compatible(viewer: (u64, u64, u64), sdk: (u64, u64, u64)) -> bool {
+    viewer.0 == sdk.0 && viewer.1 == sdk.1
+}
+
+fn sdk_triple() -> (u64, u64, u64) {
+    let v = rerun::build_info().version;
+    (u64::from(v.major), u64::from(v.minor), u64::from(v.patch))
+}
+
+/// Checks that `path` runs and has a compatible version.
+pub fn check_viewer(path: &Path) -> Result<(), ViewerError> {
+    let output =
+        Command::new(path)
+            .arg("--version")
+            .output()
+            .map_err(|e| ViewerError::NotRunnable {
+                path: path.to_path_buf(),
+                reason: e.to_string(),
+            })?;
+    let text = String::from_utf8_lossy(&output.stdout);
+    let found = parse_viewer_version(&text).ok_or_else(|| ViewerError::NotRunnable {
+        path: path.to_path_buf(),
+        reason: format!(
+            "`--version` printed {:?}, not `rerun-cli X.Y.Z …` (stderr: {})",
+            text.trim(),
+            String::from_utf8_lossy(&output.stderr).trim()
+        ),
+    })?;
+    if !versions_compatible(found, sdk_triple()) {
+        return Err(ViewerError::VersionMismatch {
+            path: path.to_path_buf(),
+            found: format!("{}.{}.{}", found.0, found.1, found.2),
+            expected: sdk_version(),
+        });
+    }
+    Ok(())
+}
+
+/// The viewer to use: `explicit` (--viewer), else $GAITSCOPE_RERUN, else the one setup unpacked,
+/// else `rerun` on PATH; the first that exists must also have a matching version.
+pub fn find_viewer(explicit: Option<&Path>) -> Result<PathBuf, ViewerError> {
+    let mut candidates: Vec<PathBuf> = Vec::new();
+    if let Some(p) = explicit {
+        candidates.push(p.to_path_buf());
+    } else if let Some(p) = std::env::var_os(VIEWER_ENV).filter(|p| !p.is_empty()) {
+        candidates.push(PathBuf::from(p));
+    } else {
+        candidates.push(PathBuf::from(BUNDLED_VIEWER));
+        if let Some(path) = std::env::var_os("PATH") {
+            candidates.extend(std::env::split_paths(&path).map(|d| d.join("rerun")));
+        }
+    }
+    match candidates.iter().find(|p| p.is_file()) {
+        Some(path) => {
+            check_viewer(path)?;
+            Ok(path.clone())
+        }
+        None => Err(ViewerError::NotFound {
+            searched: if explicit.is_some() || candidates.len() == 1 {
+                candidates[0].display().to_string()
+            } else {
+                format!("{BUNDLED_VIEWER} and `rerun` on PATH")
+            },
+        }),
+    }
+}
+
+/// Fails with a message naming the headless alternative when there is no display to open
+/// windows on.
+pub fn require_display(what: &'static str) -> Result<(), ViewerError> {
+    let set = |k: &str| std::env::var_os(k).is_some_and(|v| !v.is_empty());
+    if cfg!(target_os = "linux") && !set("DISPLAY") && !set("WAYLAND_DISPLAY") {
+        return Err(ViewerError::NoDisplay { what });
+    }
+    Ok(())
+}
+
+/// Starts the viewer listening for our stream (or reuses one already listening on Rerun's
+/// port) and returns the address to stream to.
+pub fn spawn_viewer(viewer: &Path) -> Result<String, ViewerError> {
+    let opts = rerun::SpawnOptions {
+        executable_path: Some(viewer.display().to_string()),
+        extra_args: vec!["--window-size".into(), VIEWER_WINDOW_SIZE.into()],
+        hide_welcome_screen: true,
+        wait_for_bind: true,
+        ..Default::default()
+    };
+    let info = rerun::spawn(&opts).map_err(|e| ViewerError::Spawn(e.to_string()))?;
+    Ok(format!("rerun+http://127.0.0.1:{}/proxy", info.port))
+}
+
+/// Checks that `path` is a readable Rerun recording (by its magic bytes).
+pub fn check_recording(path: &Path) -> Result<(), ViewerError> {
+    use std::io::Read;
+    let err = |reason: String| ViewerError::NotARecording {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let mut magic = [0u8; 4];
+    std::fs::File::open(path)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .map_err(|e| err(e.to_string()))?;
+    if &magic[..3] != b"RRF" {
+        return Err(err(format!(
+            "it starts with {magic:?}, not Rerun's RRF header"
+        )));
+    }
+    Ok(())
+}
+
+/// Opens a recording in the viewer (its default blueprint is stored in the file) and waits for
+/// the viewer to close.
+pub fn view_recording(viewer: &Path, recording: &Path) -> Result<(), ViewerError> {
+    check_recording(recording)?;
+    let status = Command::new(viewer)
+        .arg("--window-size")
+        .arg(VIEWER_WINDOW_SIZE)
+        .arg(recording)
+        .status()
+        .map_err(|e| ViewerError::NotRunnable {
+            path: viewer.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+    if !status.success() {
+        return Err(ViewerError::NotRunnable {
+            path: viewer.to_path_buf(),
+            reason: format!("it exited with {status}"),
+        });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn viewer_versions_parse_and_match_on_major_minor() {
+        let out = "rerun-cli 0.36.3 (base native_viewer) [rustc 1.95.0] x86_64-unknown-linux-gnu";
+        assert_eq!(parse_viewer_version(out), Some((0, 36, 3)));
+        assert_eq!(
+            parse_viewer_version("rerun-cli 0.37.0-alpha.1"),
+            Some((0, 37, 0))
+        );
+        assert_eq!(parse_viewer_version("command not found"), None);
+        assert_eq!(parse_viewer_version(""), None);
+        assert!(versions_compatible((0, 36, 0), (0, 36, 3)));
+        assert!(!versions_compatible((0, 35, 3), (0, 36, 3)));
+        assert!(!versions_compatible((1, 36, 3), (0, 36, 3)));
+    }
+
+    #[test]
+    fn a_missing_or_wrong_viewer_is_a_clear_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("rerun");
+        let e = find_viewer(Some(&missing)).unwrap_err().to_string();
+        assert!(
+            e.contains("no Rerun viewer found") && e.contains("make viewer"),
+            "{e}"
+        );
+        // A "viewer" that reports another version.
+        let fake = dir.path().join("old-rerun");
+        std::fs::write(&fake, "#!/bin/sh\necho 'rerun-cli 0.20.1 (x)'\n").unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+        let e = find_viewer(Some(&fake)).unwrap_err().to_string();
+        assert!(
+            e.contains("version 0.20.1") && e.contains(&sdk_version()),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn recordings_are_recognised_by_their_header() {
+        let dir = tempfile::tempdir().unwrap();
+        let bad = dir.path().join("notes.rrd");
+        std::fs::write(&bad, "hello world").unwrap();
+        let e = check_recording(&bad).unwrap_err().to_string();
+        assert!(e.contains("not a Rerun recording"), "{e}");
+        let e = check_recording(&dir.path().join("absent.rrd"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("absent.rrd"), "{e}");
+        std::fs::write(&bad, b"RRF2\x00\x00\x00\x00").unwrap();
+        assert!(check_recording(&bad).is_ok());
+    }
+}

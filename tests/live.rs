@@ -1,0 +1,381 @@
+//! The live viewer without a display: the simulation thread driven by scripted commands, the
+//! recorded stream read back, and the egui panel clicked through its AccessKit tree.
+
+use candle_core::Device;
+use gaitscope::GaitConfig;
+use gaitscope::app::{Command, LIVE_ROOTS, LiveCondition, LiveSetup, SimHandle, Snapshot};
+use gaitscope::damage::{JointOverride, JointState};
+use gaitscope::policy::checkpoint::TrainingRecord;
+use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, SacConfig, SacModel};
+use gaitscope::telemetry::{Sink, open};
+use re_chunk::Chunk;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+
+const WAIT: Duration = Duration::from_secs(20);
+
+/// A small untrained LSTM-encoder checkpoint: the loop's behaviour does not depend on skill.
+fn checkpoint(dir: &Path) {
+    let net = NetConfig {
+        hidden: vec![16, 16],
+        z_dim: 4,
+        ..NetConfig::ant(EncoderKind::Lstm)
+    };
+    let model = SacModel::new(net, 1.0, 7, &Device::Cpu).unwrap();
+    let record = TrainingRecord {
+        env: GaitConfig::default(),
+        sac: SacConfig::default(),
+        seed: 7,
+        steps_done: 0,
+        episodes_done: 0,
+        wall_time_s: 0.0,
+    };
+    model.save(dir, &record).unwrap();
+}
+
+fn setup(dir: &Path, condition: LiveCondition) -> LiveSetup {
+    LiveSetup {
+        checkpoint: dir.to_path_buf(),
+        compare: None,
+        condition,
+        seed: 3,
+        speed: 8.0,
+        step_limit: 200,
+        mode: ActionMode::Deterministic,
+        paused: true,
+        config: GaitConfig::default(),
+    }
+}
+
+fn memory_stream() -> (rerun::RecordingStream, rerun::sink::MemorySinkStorage) {
+    let roots: Vec<String> = LIVE_ROOTS.iter().map(|r| r.to_string()).collect();
+    let (rec, storage) = open(&Sink::Memory, "gaitscope-live-test", &roots).unwrap();
+    (rec, storage.unwrap())
+}
+
+/// Sends one single-step command and waits until the simulation has taken it.
+fn step_once(sim: &SimHandle) -> Snapshot {
+    let before = sim.snapshot().global_step;
+    assert!(sim.send(Command::StepOnce));
+    let s = sim.wait_for(WAIT, |s| s.global_step == before + 1);
+    assert_eq!(s.global_step, before + 1, "the step happened");
+    s
+}
+
+/// Rows of an 8-wide scalar batch per `step`, for one entity.
+fn series(chunks: &[Chunk], entity: &str) -> BTreeMap<i64, [f64; 8]> {
+    let scalars = rerun::Scalars::descriptor_scalars().component;
+    let mut out = BTreeMap::new();
+    for c in chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == entity)
+    {
+        let Some(steps) = c.timelines().get(&"step".into()) else {
+            continue;
+        };
+        for (t, s) in steps.times_raw().iter().zip(c.iter_slices::<f64>(scalars)) {
+            if let Ok(row) = <[f64; 8]>::try_from(s) {
+                out.insert(*t, row);
+            }
+        }
+    }
+    out
+}
+
+fn texts(chunks: &[Chunk], entity: &str) -> Vec<(i64, String)> {
+    let text = rerun::TextLog::descriptor_text().component;
+    let mut out = Vec::new();
+    for c in chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == entity)
+    {
+        let Some(steps) = c.timelines().get(&"step".into()) else {
+            continue;
+        };
+        for (t, s) in steps.times_raw().iter().zip(c.iter_slices::<String>(text)) {
+            out.extend(s.iter().map(|v| (*t, v.to_string())));
+        }
+    }
+    out
+}
+
+#[test]
+fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint(dir.path());
+    let (rec, storage) = memory_stream();
+    // Manual: fatigue never triggers, so every scale change below is ours.
+    let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Manual)).unwrap();
+    let names = sim.snapshot().lanes[0].joint_names.clone();
+    for _ in 0..5 {
+        step_once(&sim);
+    }
+    // Before env step 5 (recorded at global step 6): joint 2 fails (manual → severe scale 0.1).
+    sim.send(Command::Override {
+        actuator: 2,
+        change: JointOverride::FailNow,
+    });
+    let s = step_once(&sim);
+    assert_eq!(s.lanes[0].states[2], JointState::Triggered);
+    assert_eq!(s.lanes[0].applied[2], 0.1 * s.lanes[0].commanded[2]);
+    for _ in 0..4 {
+        step_once(&sim);
+    }
+    // Before env step 10: joint 5 pinned at 0.3 by hand.
+    sim.send(Command::Override {
+        actuator: 5,
+        change: JointOverride::SetScale(0.3),
+    });
+    let s = step_once(&sim);
+    assert_eq!(s.lanes[0].states[5], JointState::Manual);
+    assert_eq!(s.lanes[0].applied[5], 0.3 * s.lanes[0].commanded[5]);
+    // Before env step 11: joint 2 healed.
+    sim.send(Command::Override {
+        actuator: 2,
+        change: JointOverride::Heal,
+    });
+    let s = step_once(&sim);
+    assert_eq!(s.lanes[0].states[2], JointState::Healthy);
+    assert_eq!(s.lanes[0].applied[2], s.lanes[0].commanded[2]);
+    // A bad value is refused with a message, and nothing changes.
+    sim.send(Command::Override {
+        actuator: 1,
+        change: JointOverride::SetScale(1.5),
+    });
+    let s = sim.wait_for(WAIT, |s| s.message.is_some());
+    assert!(
+        s.message.as_deref().unwrap_or("").contains("[0, 1]"),
+        "{:?}",
+        s.message
+    );
+    let s = step_once(&sim);
+    assert_eq!(s.global_step, 13);
+    assert_eq!(s.lanes[0].scale[1], 1.0);
+    sim.shutdown().unwrap();
+
+    let chunks: Vec<Chunk> = storage
+        .take()
+        .into_iter()
+        .filter_map(|m| match m {
+            rerun::log::LogMsg::ArrowMsg(store, arrow)
+                if store.kind() == rerun::StoreKind::Recording =>
+            {
+                Some(Chunk::from_arrow_msg(&arrow).unwrap())
+            }
+            _ => None,
+        })
+        .collect();
+    let commanded = series(&chunks, "/ant/actions/commanded");
+    let applied = series(&chunks, "/ant/actions/applied");
+    assert_eq!(applied.len(), 13, "one row per env step");
+    // Env step t is recorded at global step t + 1. Expected scale per (joint, env step):
+    let expected = |joint: usize, t: i64| match joint {
+        2 if (5..11).contains(&t) => 0.1,
+        5 if t >= 10 => 0.3,
+        _ => 1.0,
+    };
+    for t in 0..13i64 {
+        for j in 0..8 {
+            assert_eq!(
+                applied[&(t + 1)][j],
+                expected(j, t) * commanded[&(t + 1)][j],
+                "joint {j} at env step {t}"
+            );
+        }
+    }
+    let events = texts(&chunks, "/ant/events");
+    let expect = [
+        (
+            6,
+            format!("step 5: {} override FailNow; scale → 0.1", names[2]),
+        ),
+        (
+            11,
+            format!("step 10: {} override SetScale(0.3); scale → 0.3", names[5]),
+        ),
+        (
+            12,
+            format!("step 11: {} override Heal; scale → 1", names[2]),
+        ),
+    ];
+    assert_eq!(
+        events,
+        expect.map(|(t, s)| (t, s)).to_vec(),
+        "exactly the three overrides, each with the step it applied to"
+    );
+}
+
+#[test]
+fn pause_speed_condition_and_reset_are_obeyed() {
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint(dir.path());
+    let (rec, _storage) = memory_stream();
+    let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+    // Paused: nothing moves.
+    std::thread::sleep(Duration::from_millis(200));
+    assert_eq!(sim.snapshot().global_step, 0);
+    // Speed is clamped to 0.25×…8×; running at 8× (160 steps/s) moves on its own.
+    sim.send(Command::SetSpeed(100.0));
+    sim.send(Command::Resume);
+    let s = sim.wait_for(WAIT, |s| s.global_step >= 20);
+    assert!(s.global_step >= 20 && !s.paused);
+    assert_eq!(s.speed, 8.0);
+    assert_eq!(s.target_steps_per_s, 160.0);
+    sim.send(Command::Pause);
+    let paused = sim.wait_for(WAIT, |s| s.paused);
+    std::thread::sleep(Duration::from_millis(100));
+    assert_eq!(
+        sim.snapshot().global_step,
+        paused.global_step,
+        "paused stays put"
+    );
+    // Condition, seed and step limit apply at the reset.
+    sim.send(Command::SetCondition(LiveCondition::Mild));
+    sim.send(Command::SetSeed(42));
+    sim.send(Command::SetStepLimit(3));
+    sim.send(Command::Reset);
+    let s = sim.wait_for(WAIT, |s| s.episode_seed == 42);
+    assert_eq!((s.episodes, s.episode_seed), (2, 42));
+    assert_eq!(s.lanes[0].step, 0);
+    assert_eq!(s.condition, LiveCondition::Mild);
+    sim.send(Command::Override {
+        actuator: 0,
+        change: JointOverride::FailNow,
+    });
+    let s = step_once(&sim);
+    assert_eq!(s.lanes[0].applied[0], 0.5 * s.lanes[0].commanded[0], "mild");
+    // The step limit of 3 ends the episode after 3 steps; a step then starts the next seed.
+    step_once(&sim);
+    let s = step_once(&sim);
+    assert!(s.lanes[0].done && s.lanes[0].step == 3);
+    sim.send(Command::StepOnce);
+    let s = sim.wait_for(WAIT, |s| s.episode_seed == 43);
+    assert_eq!(s.lanes[0].step, 0);
+    // A missing checkpoint is a message, and the current model keeps running.
+    sim.send(Command::Load {
+        slot: gaitscope::app::Slot::Compare,
+        dir: dir.path().join("nope"),
+    });
+    let s = sim.wait_for(WAIT, |s| s.message.is_some());
+    assert!(!s.compare && s.lanes.len() == 1, "{:?}", s.message);
+    // A real second model runs side by side under the same damage.
+    sim.send(Command::Load {
+        slot: gaitscope::app::Slot::Compare,
+        dir: dir.path().to_path_buf(),
+    });
+    let s = sim.wait_for(WAIT, |s| s.lanes.len() == 2);
+    assert!(s.compare && s.lanes[1].root == "compare");
+    sim.send(Command::Override {
+        actuator: 4,
+        change: JointOverride::SetScale(0.2),
+    });
+    let s = step_once(&sim);
+    for lane in &s.lanes {
+        assert_eq!(lane.applied[4], 0.2 * lane.commanded[4], "{}", lane.root);
+    }
+    sim.send(Command::SetCompare(false));
+    let s = sim.wait_for(WAIT, |s| s.lanes.len() == 1);
+    assert!(!s.compare);
+    sim.shutdown().unwrap();
+}
+
+#[test]
+fn bad_settings_are_refused_before_anything_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = setup(&dir.path().join("absent"), LiveCondition::Severe);
+    let e = missing.validate().unwrap_err().to_string();
+    assert!(e.contains("absent"), "{e}");
+    checkpoint(dir.path());
+    let fast = LiveSetup {
+        speed: 16.0,
+        ..setup(dir.path(), LiveCondition::Severe)
+    };
+    assert!(
+        fast.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("between 0.25× and 8×")
+    );
+    let none = LiveSetup {
+        step_limit: 0,
+        ..setup(dir.path(), LiveCondition::Severe)
+    };
+    assert!(none.validate().is_err());
+    assert!(setup(dir.path(), LiveCondition::Severe).validate().is_ok());
+}
+
+#[cfg(feature = "live")]
+mod panel {
+    use super::*;
+    use egui_kittest::Harness;
+    use egui_kittest::kittest::Queryable;
+    use gaitscope::app::panel::Panel;
+
+    fn harness(sim: &SimHandle) -> Harness<'static, Panel> {
+        let panel = Panel::new(sim.link(), Vec::new());
+        Harness::builder()
+            .with_size([520.0, 900.0])
+            .build_ui_state(|ui, panel: &mut Panel| panel.ui(ui), panel)
+    }
+
+    #[test]
+    fn clicking_fail_now_damages_that_joint_from_the_next_step() {
+        let dir = tempfile::tempdir().unwrap();
+        checkpoint(dir.path());
+        let (rec, _storage) = memory_stream();
+        let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+        let mut ui = harness(&sim);
+        ui.run();
+        assert_eq!(ui.get_all_by_label("fail now").count(), 8, "one per joint");
+        assert_eq!(ui.get_all_by_label("healthy").count(), 8);
+        ui.get_all_by_label("fail now")
+            .nth(3)
+            .expect("a fourth joint")
+            .click();
+        ui.run();
+        let s = sim.wait_for(WAIT, |s| s.lanes[0].states[3] == JointState::Triggered);
+        assert_eq!(s.lanes[0].states[3], JointState::Triggered);
+        assert_eq!(s.global_step, 0, "paused: not applied to a step yet");
+        // The panel shows it, and Step runs exactly one env step with the joint at 0.1.
+        ui.run();
+        assert_eq!(ui.get_all_by_label("triggered").count(), 1);
+        ui.get_by_label("Step").click();
+        ui.run();
+        let s = sim.wait_for(WAIT, |s| s.global_step == 1);
+        assert_eq!(s.global_step, 1);
+        let lane = &s.lanes[0];
+        assert_eq!(lane.applied[3], 0.1 * lane.commanded[3]);
+        for j in (0..8).filter(|&j| j != 3) {
+            assert_eq!(lane.applied[j], lane.commanded[j], "joint {j} untouched");
+        }
+        // Heal from the panel.
+        ui.get_all_by_label("heal")
+            .nth(3)
+            .expect("a fourth joint")
+            .click();
+        ui.run();
+        let s = sim.wait_for(WAIT, |s| s.lanes[0].states[3] == JointState::Healthy);
+        assert_eq!(s.lanes[0].scale[3], 1.0);
+        sim.shutdown().unwrap();
+    }
+
+    #[test]
+    fn resume_and_pause_buttons_drive_the_sim() {
+        let dir = tempfile::tempdir().unwrap();
+        checkpoint(dir.path());
+        let (rec, _storage) = memory_stream();
+        let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+        let mut ui = harness(&sim);
+        ui.run();
+        ui.get_by_label("Resume").click();
+        ui.run();
+        let s = sim.wait_for(WAIT, |s| s.global_step >= 5);
+        assert!(!s.paused && s.global_step >= 5);
+        ui.run();
+        ui.get_by_label("Pause").click();
+        ui.run();
+        assert!(sim.wait_for(WAIT, |s| s.paused).paused);
+        sim.shutdown().unwrap();
+    }
+}
