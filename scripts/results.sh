@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Regenerates docs/results/ (tables and figures) from the committed checkpoints:
-#   eval of every model on the same seeds, then probes of each encoder's z.
+#   eval of every model on the same seeds, probes of each encoder's z, training curves.
 # Usage: scripts/results.sh [EPISODES_PER_CONDITION]   (default 100)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 episodes="${1:-100}"
-bin=target/release/gaitscope
+bin="${CARGO_TARGET_DIR:-target}/release/gaitscope"
 out=docs/results
 mkdir -p "$out"
 models=()
@@ -23,4 +23,5 @@ for m in encoder-lstm encoder-mlp; do
   [ -f checkpoints/baseline/checkpoint.json ] && base=(--baseline checkpoints/baseline)
   "$bin" probe --checkpoint "checkpoints/$m" "${base[@]}" --out "$out/probe-$m" > "$out/probe-$m.md"
 done
+"$bin" curves --run "${models[@]}" --out "$out/training_curves.png"
 echo "wrote $out"

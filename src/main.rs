@@ -40,6 +40,8 @@ enum Command {
     Eval(EvalArgs),
     /// Linear probes and PCA on an encoder's z; saves probe.json next to the checkpoint.
     Probe(ProbeArgs),
+    /// Training curves (return, success, losses, α, triggers) from runs' metrics.jsonl, as a PNG.
+    Curves(CurvesArgs),
     /// Measure performance.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -215,6 +217,16 @@ struct LiveArgs {
 }
 
 #[derive(Args)]
+struct CurvesArgs {
+    /// Run folders (or metrics.jsonl files); each becomes a line named after its folder.
+    #[arg(long = "run", value_name = "DIR", required = true, num_args = 1..)]
+    runs: Vec<PathBuf>,
+    /// The PNG to write.
+    #[arg(long, value_name = "FILE", default_value = "training_curves.png")]
+    out: PathBuf,
+}
+
+#[derive(Args)]
 struct ViewArgs {
     /// The recording to open.
     file: PathBuf,
@@ -338,6 +350,21 @@ fn run(cli: Cli) -> Result<()> {
         Command::Eval(args) => eval_command(args),
         Command::Record(args) => record_command(args),
         Command::Live(args) => live_command(args),
+        Command::Curves(args) => {
+            use gaitscope::train::curves::{RunMetrics, figure};
+            let mut runs = Vec::new();
+            for run in &args.runs {
+                let dir = if run.is_dir() {
+                    run.as_path()
+                } else {
+                    run.parent().unwrap_or(run)
+                };
+                runs.push((gaitscope::eval::model_label(dir), RunMetrics::read(run)?));
+            }
+            figure(&runs, &args.out)?;
+            eprintln!("wrote {}", args.out.display());
+            Ok(())
+        }
         Command::View(args) => view_command(args),
         Command::Bench(BenchCommand::Live {
             checkpoint,
@@ -627,7 +654,10 @@ fn live_command(args: LiveArgs) -> Result<()> {
     // Check what can be checked before any window opens.
     setup.validate()?;
     let url = match &args.connect {
-        Some(url) => url.clone(),
+        Some(url) => {
+            viewer::check_reachable(url)?;
+            url.clone()
+        }
         None => {
             let path = viewer::find_viewer(args.viewer.as_deref())?;
             let url = viewer::spawn_viewer(&path)?;
@@ -659,7 +689,7 @@ fn live_command(args: LiveArgs) -> Result<()> {
         }
     }
     let panel = run_panel(&sim, checkpoints, args.exit_after);
-    let report = sim.shutdown()?;
+    let report = sim.shutdown();
     let stats = panel?;
     eprintln!(
         "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
@@ -668,7 +698,7 @@ fn live_command(args: LiveArgs) -> Result<()> {
         stats.fps(),
         stats.mean_frame_cpu_ms
     );
-    for s in &report.speeds {
+    for s in &report?.speeds {
         eprintln!(
             "sim at {}×: {:.1} of {:.0} env steps/s ({:.0} % of real time asked for) over {:.1} s",
             s.speed,

@@ -295,3 +295,83 @@ fn padded((lo, hi): (f64, f64)) -> (f64, f64) {
     let pad = ((hi - lo) * 0.05).max(1e-6);
     (lo - pad, hi + pad)
 }
+
+/// One panel of a multi-panel line figure: a title, a y label and named lines.
+pub struct LinePanel {
+    pub title: String,
+    pub y_label: String,
+    pub lines: Vec<(String, Vec<(f64, f64)>)>,
+    /// A fixed y range (e.g. 0…1 for a rate); otherwise fitted to the data.
+    pub y_range: Option<(f64, f64)>,
+}
+
+/// Panels on a grid of `columns`, sharing the x label; one colour per line name across panels.
+pub fn line_panels(
+    path: &Path,
+    x_label: &str,
+    columns: usize,
+    panels: &[LinePanel],
+) -> Result<(), PlotError> {
+    let columns = columns.max(1);
+    let rows = panels.len().div_ceil(columns).max(1);
+    let mut names: Vec<&str> = Vec::new();
+    for (name, _) in panels.iter().flat_map(|p| &p.lines) {
+        if !names.contains(&name.as_str()) {
+            names.push(name);
+        }
+    }
+    render(path, (560 * columns as u32, 380 * rows as u32), |root| {
+        for (area, panel) in root.split_evenly((rows, columns)).iter().zip(panels) {
+            let points = || panel.lines.iter().flat_map(|(_, l)| l.iter().copied());
+            let (x0, x1) =
+                min_max(points().map(|p| p.0).filter(|v| v.is_finite())).unwrap_or((0.0, 1.0));
+            let (y0, y1) = panel.y_range.unwrap_or_else(|| {
+                padded(
+                    min_max(points().map(|p| p.1).filter(|v| v.is_finite())).unwrap_or((0.0, 1.0)),
+                )
+            });
+            let mut chart = ChartBuilder::on(area)
+                .caption(&panel.title, ("sans-serif", 20))
+                .margin(12)
+                .x_label_area_size(36)
+                .y_label_area_size(60)
+                .build_cartesian_2d(x0..x1.max(x0 + 1e-9), y0..y1)?;
+            chart
+                .configure_mesh()
+                .x_desc(x_label)
+                .y_desc(&panel.y_label)
+                .x_label_formatter(&|x| thousands(*x))
+                .label_style(("sans-serif", 13))
+                .draw()?;
+            for (name, line) in &panel.lines {
+                let k = names.iter().position(|n| n == name).unwrap_or(0);
+                let color = PALETTE[k % PALETTE.len()];
+                chart
+                    .draw_series(LineSeries::new(
+                        line.iter().copied().filter(|p| p.1.is_finite()),
+                        color.stroke_width(2),
+                    ))?
+                    .label(name.clone())
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                    });
+            }
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .label_font(("sans-serif", 13))
+                .draw()?;
+        }
+        Ok(())
+    })
+}
+
+/// Axis labels for step counts: 120000 → "120k".
+fn thousands(x: f64) -> String {
+    if x.abs() >= 1000.0 {
+        format!("{}k", (x / 1000.0).round())
+    } else {
+        format!("{}", x.round())
+    }
+}

@@ -336,7 +336,11 @@ fn live_and_view_explain_what_is_missing() {
     // Bad settings are refused before any window or viewer opens (a display is "set" here, but
     // nothing gets far enough to use it).
     let out = gaitscope_display(&["live", "--speed", "20"], Some(":12345"));
-    assert!(stderr(&out).contains("between 0.25× and 8×"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("between 0.25× and 8×"),
+        "{}",
+        stderr(&out)
+    );
     let out = gaitscope_display(
         &["live", "--checkpoint", dir.path().to_str().unwrap()],
         Some(":12345"),
@@ -360,7 +364,11 @@ fn live_and_view_explain_what_is_missing() {
     assert!(stderr(&out).contains("nowhere.rrd"), "{}", stderr(&out));
     let text = write(dir.path(), "notes.rrd", "not a recording");
     let out = gaitscope_display(&["view", &text], None);
-    assert!(stderr(&out).contains("not a Rerun recording"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("not a Rerun recording"),
+        "{}",
+        stderr(&out)
+    );
     let rrd = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/baseline-severe.rrd");
     let out = gaitscope_display(&["view", rrd.to_str().unwrap()], None);
     assert!(stderr(&out).contains("no display"), "{}", stderr(&out));

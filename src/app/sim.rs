@@ -19,6 +19,8 @@ use crate::telemetry::{Actor, Lane, Session};
 const HOLD_FINISHED: Duration = Duration::from_millis(1500);
 /// Behind schedule by more than this, the sim stops trying to catch up (it would only burst).
 const MAX_LAG: Duration = Duration::from_millis(250);
+/// How long the end of a session waits for the viewer to take the last data.
+const FLUSH_TIMEOUT: Duration = Duration::from_secs(5);
 /// While paused, the thread still wakes this often (to notice a closed panel).
 const IDLE_WAIT: Duration = Duration::from_millis(100);
 
@@ -391,12 +393,22 @@ impl Sim {
                 next_tick = Instant::now();
             }
         }
-        let flushed = self.session.flush();
+        let flushed = self.session.flush_within(FLUSH_TIMEOUT);
         let mut snapshot = self.snapshot();
         snapshot.stopped = true;
         *lock(&shared) = snapshot;
+        let report = self.report();
+        if flushed.is_err() {
+            // Rerun's stream blocks on drop until a viewer takes its data; a viewer that is gone
+            // never will. Leave the stream to process exit rather than hang the program.
+            std::mem::forget(self.session);
+        }
         flushed?;
-        Ok(SimReport {
+        Ok(report)
+    }
+
+    fn report(&self) -> SimReport {
+        SimReport {
             steps: self.session.global_step(),
             episodes: self.session.episodes_started(),
             speeds: self
@@ -409,7 +421,7 @@ impl Sim {
                     target_steps_per_s: k as f64 / 1000.0 / self.dt,
                 })
                 .collect(),
-        })
+        }
     }
 
     /// One tick: a step, or the next episode once a finished one has been shown long enough.

@@ -35,6 +35,11 @@ pub enum ViewerError {
     NoDisplay { what: &'static str },
     #[error("spawning the Rerun viewer: {0}")]
     Spawn(String),
+    #[error(
+        "no Rerun viewer is listening at {url} ({reason}); start one there (`rerun`, or \
+         `make viewer` then `.deps/rerun/rerun`), or leave out --connect to spawn one"
+    )]
+    Unreachable { url: String, reason: String },
     #[error("{path} is not a Rerun recording: {reason}")]
     NotARecording { path: PathBuf, reason: String },
 }
@@ -147,6 +152,31 @@ pub fn spawn_viewer(viewer: &Path) -> Result<String, ViewerError> {
     Ok(format!("rerun+http://127.0.0.1:{}/proxy", info.port))
 }
 
+/// Checks that something listens at a `rerun+http(s)://HOST:PORT/proxy` address, so that
+/// `live --connect` fails at once instead of streaming into the void.
+pub fn check_reachable(url: &str) -> Result<(), ViewerError> {
+    use std::net::ToSocketAddrs;
+    let err = |reason: String| ViewerError::Unreachable {
+        url: url.to_string(),
+        reason,
+    };
+    let rest = url.split_once("://").map_or(url, |(_, rest)| rest);
+    let authority = rest.split('/').next().unwrap_or(rest);
+    let addrs: Vec<std::net::SocketAddr> = authority
+        .to_socket_addrs()
+        .map_err(|e| err(format!("cannot resolve '{authority}': {e}")))?
+        .collect();
+    let timeout = std::time::Duration::from_secs(2);
+    if addrs
+        .iter()
+        .any(|a| std::net::TcpStream::connect_timeout(a, timeout).is_ok())
+    {
+        Ok(())
+    } else {
+        Err(err(format!("nothing accepted a connection at {authority}")))
+    }
+}
+
 /// Checks that `path` is a readable Rerun recording (by its magic bytes).
 pub fn check_recording(path: &Path) -> Result<(), ViewerError> {
     use std::io::Read;
@@ -226,6 +256,18 @@ mod tests {
             e.contains("version 0.20.1") && e.contains(&sdk_version()),
             "{e}"
         );
+    }
+
+    #[test]
+    fn connect_addresses_are_checked_for_a_listener() {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        assert!(check_reachable(&format!("rerun+http://127.0.0.1:{port}/proxy")).is_ok());
+        drop(listener);
+        let e = check_reachable(&format!("rerun+http://127.0.0.1:{port}/proxy"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no Rerun viewer is listening"), "{e}");
     }
 
     #[test]

@@ -51,6 +51,8 @@ pub enum TelemetryError {
     File { path: PathBuf, reason: String },
     #[error("flushing the recording: {0}")]
     Flush(String),
+    #[error("the viewer did not take the last data within {0:?} (was it closed?)")]
+    FlushTimeout(std::time::Duration),
     #[error(
         "'{url}' is not a Rerun viewer address (expected rerun+http://HOST:PORT/proxy): {reason}"
     )]
@@ -116,7 +118,9 @@ pub fn open(
                     create_parent_dir(path)?;
                     let file =
                         rerun::sink::FileSink::new(path).map_err(|e| file_sink_error(path, e))?;
-                    builder.set_sinks((viewer, file))?
+                    // The file first: a multi-sink flushes in order, and the file must not wait
+                    // on a slow or vanished viewer.
+                    builder.set_sinks((file, viewer))?
                 }
                 None => builder.set_sinks((viewer,))?,
             };

@@ -361,6 +361,15 @@ impl Session {
         &self.rec
     }
 
+    /// Waits up to `timeout` for everything logged so far to reach the sinks.
+    pub fn flush_within(&self, timeout: std::time::Duration) -> Result<(), TelemetryError> {
+        match self.rec.flush_with_timeout(timeout) {
+            Ok(()) => Ok(()),
+            Err(rerun::sink::SinkFlushError::Timeout) => Err(TelemetryError::FlushTimeout(timeout)),
+            Err(e) => Err(TelemetryError::Flush(e.to_string())),
+        }
+    }
+
     /// Blocks until everything logged so far has reached the sinks.
     pub fn flush(&self) -> Result<(), TelemetryError> {
         self.rec

@@ -7,6 +7,7 @@
 //! (`metrics.jsonl`, CleanRL-style names).
 
 pub mod adam;
+pub mod curves;
 pub mod replay;
 pub mod sac;
 
