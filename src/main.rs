@@ -600,7 +600,7 @@ fn record_command(args: RecordArgs) -> Result<()> {
     let summary = telemetry::record(opts, &stop)?;
     let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
     eprintln!(
-        "{}: {} episodes, {} steps, {:.1} MB → {} (open with `rerun {}`)",
+        "{}: {} episodes, {} steps, {:.1} MB → {} (open with `gaitscope view {}`)",
         if summary.interrupted {
             "interrupted, recording flushed"
         } else {
