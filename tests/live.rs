@@ -13,6 +13,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Duration;
 
+mod common;
+
 const WAIT: Duration = Duration::from_secs(20);
 
 /// A small untrained LSTM-encoder checkpoint: the loop's behaviour does not depend on skill.
@@ -66,38 +68,13 @@ fn step_once(sim: &SimHandle) -> Snapshot {
 /// Rows of an 8-wide scalar batch per `step`, for one entity.
 fn series(chunks: &[Chunk], entity: &str) -> BTreeMap<i64, [f64; 8]> {
     let scalars = rerun::Scalars::descriptor_scalars().component;
-    let mut out = BTreeMap::new();
-    for c in chunks
-        .iter()
-        .filter(|c| c.entity_path().to_string() == entity)
-    {
-        let Some(steps) = c.timelines().get(&"step".into()) else {
-            continue;
-        };
-        for (t, s) in steps.times_raw().iter().zip(c.iter_slices::<f64>(scalars)) {
-            if let Ok(row) = <[f64; 8]>::try_from(s) {
-                out.insert(*t, row);
-            }
-        }
-    }
-    out
-}
-
-fn texts(chunks: &[Chunk], entity: &str) -> Vec<(i64, String)> {
-    let text = rerun::TextLog::descriptor_text().component;
-    let mut out = Vec::new();
-    for c in chunks
-        .iter()
-        .filter(|c| c.entity_path().to_string() == entity)
-    {
-        let Some(steps) = c.timelines().get(&"step".into()) else {
-            continue;
-        };
-        for (t, s) in steps.times_raw().iter().zip(c.iter_slices::<String>(text)) {
-            out.extend(s.iter().map(|v| (*t, v.to_string())));
-        }
-    }
-    out
+    common::per_step(chunks, entity, |c| {
+        c.iter_slices::<f64>(scalars)
+            .map(|s| <[f64; 8]>::try_from(s).expect("8 joints per row"))
+            .collect()
+    })
+    .into_iter()
+    .collect()
 }
 
 #[test]
@@ -154,18 +131,7 @@ fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
     assert_eq!(s.lanes[0].scale[1], 1.0);
     sim.shutdown().unwrap();
 
-    let chunks: Vec<Chunk> = storage
-        .take()
-        .into_iter()
-        .filter_map(|m| match m {
-            rerun::log::LogMsg::ArrowMsg(store, arrow)
-                if store.kind() == rerun::StoreKind::Recording =>
-            {
-                Some(Chunk::from_arrow_msg(&arrow).unwrap())
-            }
-            _ => None,
-        })
-        .collect();
+    let chunks = common::recording_chunks(storage.take());
     let commanded = series(&chunks, "/ant/actions/commanded");
     let applied = series(&chunks, "/ant/actions/applied");
     assert_eq!(applied.len(), 13, "one row per env step");
@@ -184,7 +150,7 @@ fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
             );
         }
     }
-    let events = texts(&chunks, "/ant/events");
+    let events = common::text_log(&chunks, "/ant/events");
     let expect = [
         (
             6,

@@ -9,6 +9,9 @@ use re_chunk::Chunk;
 use std::collections::BTreeMap;
 use std::sync::atomic::AtomicBool;
 
+mod common;
+use common::recording_chunks as chunks;
+
 const SEED: u64 = 11;
 const STEPS: usize = 80;
 
@@ -66,43 +69,9 @@ fn options(sink: Sink) -> RecordOptions {
     }
 }
 
-/// The recording's chunks (the blueprint travels in its own store, with random view ids).
-fn chunks(msgs: impl IntoIterator<Item = rerun::log::LogMsg>) -> Vec<Chunk> {
-    msgs.into_iter()
-        .filter_map(|m| match m {
-            rerun::log::LogMsg::ArrowMsg(store, arrow)
-                if store.kind() == rerun::StoreKind::Recording =>
-            {
-                Some(Chunk::from_arrow_msg(&arrow).unwrap())
-            }
-            _ => None,
-        })
-        .collect()
-}
-
-/// (step → values) of one component on one entity, across chunks.
-fn by_step<T: Copy>(
-    chunks: &[Chunk],
-    entity: &str,
-    read: impl Fn(&Chunk) -> Vec<T>,
-) -> BTreeMap<i64, T> {
-    let mut out = BTreeMap::new();
-    for c in chunks
-        .iter()
-        .filter(|c| c.entity_path().to_string() == entity)
-    {
-        let Some(steps) = c.timelines().get(&"step".into()) else {
-            continue;
-        };
-        let values = read(c);
-        if values.is_empty() {
-            continue;
-        }
-        for (t, v) in steps.times_raw().iter().zip(values) {
-            out.insert(*t, v);
-        }
-    }
-    out
+/// (step → value) of one component on one entity, across chunks.
+fn by_step<T>(chunks: &[Chunk], entity: &str, read: impl Fn(&Chunk) -> Vec<T>) -> BTreeMap<i64, T> {
+    common::per_step(chunks, entity, read).into_iter().collect()
 }
 
 fn check(chunks: &[Chunk], truth: &Truth) {
@@ -148,20 +117,7 @@ fn check(chunks: &[Chunk], truth: &Truth) {
             "torso position at step {t}"
         );
     }
-    let text = rerun::TextLog::descriptor_text().component;
-    let mut events: Vec<(i64, String)> = Vec::new();
-    for c in chunks
-        .iter()
-        .filter(|c| c.entity_path().to_string() == "/ant/events")
-    {
-        let steps = c
-            .timelines()
-            .get(&"step".into())
-            .expect("events are on the step timeline");
-        for (t, s) in steps.times_raw().iter().zip(c.iter_slices::<String>(text)) {
-            events.extend(s.iter().map(|v| (*t, v.to_string())));
-        }
-    }
+    let events = common::text_log(chunks, "/ant/events");
     assert!(
         !truth.trigger_steps.is_empty(),
         "80 random steps trigger some joint"
