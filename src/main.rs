@@ -634,8 +634,7 @@ fn live_command(args: LiveArgs) -> Result<()> {
     {
         bail!("--save {} should end in .rrd", path.display());
     }
-    let mut config = args.env.load()?;
-    config.env.max_episode_steps = args.max_steps;
+    let config = args.env.load()?;
     let setup = app::LiveSetup {
         checkpoint: args.checkpoint.clone(),
         compare: args.compare.clone(),

@@ -56,6 +56,17 @@ fn memory_stream() -> (rerun::RecordingStream, rerun::sink::MemorySinkStorage) {
     (rec, storage.unwrap())
 }
 
+/// A paused simulation thread on a fresh checkpoint, streaming to memory. Keep the folder alive.
+fn started(
+    condition: LiveCondition,
+) -> (tempfile::TempDir, SimHandle, rerun::sink::MemorySinkStorage) {
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint(dir.path());
+    let (rec, storage) = memory_stream();
+    let sim = SimHandle::spawn(rec, setup(dir.path(), condition)).unwrap();
+    (dir, sim, storage)
+}
+
 /// Sends one single-step command and waits until the simulation has taken it.
 fn step_once(sim: &SimHandle) -> Snapshot {
     let before = sim.snapshot().global_step;
@@ -79,11 +90,8 @@ fn series(chunks: &[Chunk], entity: &str) -> BTreeMap<i64, [f64; 8]> {
 
 #[test]
 fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
-    let dir = tempfile::tempdir().unwrap();
-    checkpoint(dir.path());
-    let (rec, storage) = memory_stream();
     // Manual: fatigue never triggers, so every scale change below is ours.
-    let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Manual)).unwrap();
+    let (_dir, sim, storage) = started(LiveCondition::Manual);
     let names = sim.snapshot().lanes[0].joint_names.clone();
     for _ in 0..5 {
         step_once(&sim);
@@ -174,10 +182,7 @@ fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
 
 #[test]
 fn pause_speed_condition_and_reset_are_obeyed() {
-    let dir = tempfile::tempdir().unwrap();
-    checkpoint(dir.path());
-    let (rec, _storage) = memory_stream();
-    let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+    let (dir, sim, _storage) = started(LiveCondition::Severe);
     // Paused: nothing moves.
     std::thread::sleep(Duration::from_millis(200));
     assert_eq!(sim.snapshot().global_step, 0);
@@ -287,10 +292,7 @@ mod panel {
 
     #[test]
     fn clicking_fail_now_damages_that_joint_from_the_next_step() {
-        let dir = tempfile::tempdir().unwrap();
-        checkpoint(dir.path());
-        let (rec, _storage) = memory_stream();
-        let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+        let (_dir, sim, _storage) = started(LiveCondition::Severe);
         let mut ui = harness(&sim);
         ui.run();
         assert_eq!(ui.get_all_by_label("fail now").count(), 8, "one per joint");
@@ -328,10 +330,7 @@ mod panel {
 
     #[test]
     fn resume_and_pause_buttons_drive_the_sim() {
-        let dir = tempfile::tempdir().unwrap();
-        checkpoint(dir.path());
-        let (rec, _storage) = memory_stream();
-        let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+        let (_dir, sim, _storage) = started(LiveCondition::Severe);
         let mut ui = harness(&sim);
         ui.run();
         ui.get_by_label("Resume").click();

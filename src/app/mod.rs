@@ -163,6 +163,8 @@ pub enum LiveError {
     BadStepLimit,
     #[error("the simulation thread stopped unexpectedly")]
     SimThreadPanicked,
+    #[error("starting the simulation thread: {0}")]
+    ThreadStart(std::io::Error),
 }
 
 /// Frame statistics of the panel window, for the frame-rate report.

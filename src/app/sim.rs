@@ -42,19 +42,32 @@ pub struct LiveSetup {
 }
 
 impl LiveSetup {
-    /// Checks the settings and that the checkpoints load, before any window or viewer opens.
-    pub fn validate(&self) -> Result<(), LiveError> {
+    fn check_settings(&self) -> Result<(), LiveError> {
         if !(self.speed.is_finite() && (MIN_SPEED..=MAX_SPEED).contains(&self.speed)) {
             return Err(LiveError::BadSpeed(self.speed));
         }
         if self.step_limit == 0 {
             return Err(LiveError::BadStepLimit);
         }
+        Ok(())
+    }
+
+    /// Checks the settings and that the checkpoints load, before any window or viewer opens.
+    pub fn validate(&self) -> Result<(), LiveError> {
+        self.check_settings()?;
         for dir in std::iter::once(&self.checkpoint).chain(&self.compare) {
             crate::policy::Policy::load(dir, None)?;
         }
         Ok(())
     }
+}
+
+/// `base` with the panel's condition and step limit.
+fn episode_config(base: &GaitConfig, condition: LiveCondition, step_limit: usize) -> GaitConfig {
+    let mut config = base.clone();
+    config.env.max_episode_steps = step_limit;
+    config.damage.condition = ConditionChoice::Fixed(condition.env_condition());
+    config
 }
 
 /// One model as the panel shows it.
@@ -128,13 +141,6 @@ impl LaneView {
             }),
         }
     }
-
-    pub fn n_triggered(&self) -> usize {
-        self.states
-            .iter()
-            .filter(|s| **s != JointState::Healthy)
-            .count()
-    }
 }
 
 /// What the panel shows: the simulation's state after the latest step or command.
@@ -203,18 +209,11 @@ impl SimHandle {
     /// Loads the checkpoints (errors surface here, before any window opens), then starts the
     /// simulation thread streaming to `rec`.
     pub fn spawn(rec: RecordingStream, setup: LiveSetup) -> Result<Self, LiveError> {
-        if !(setup.speed.is_finite() && (MIN_SPEED..=MAX_SPEED).contains(&setup.speed)) {
-            return Err(LiveError::BadSpeed(setup.speed));
-        }
-        if setup.step_limit == 0 {
-            return Err(LiveError::BadStepLimit);
-        }
+        setup.check_settings()?;
         let main = Actor::load(&setup.checkpoint)?;
         let compare = setup.compare.as_deref().map(Actor::load).transpose()?;
         let compare_on = compare.is_some();
-        let mut config = setup.config.clone();
-        config.env.max_episode_steps = setup.step_limit;
-        config.damage.condition = ConditionChoice::Fixed(setup.condition.env_condition());
+        let config = episode_config(&setup.config, setup.condition, setup.step_limit);
         let mut session = Session::new(rec, live_specs(main, compare), config)?;
         session.set_action_mode(setup.mode);
         session.set_fatigue_triggers(setup.condition.fatigue_triggers());
@@ -245,7 +244,7 @@ impl SimHandle {
         let thread = std::thread::Builder::new()
             .name("gaitscope-sim".into())
             .spawn(move || sim.run(rx, shared))
-            .map_err(|_| LiveError::SimThreadPanicked)?;
+            .map_err(LiveError::ThreadStart)?;
         Ok(Self {
             tx,
             snapshot,
@@ -444,9 +443,7 @@ impl Sim {
     }
 
     fn new_episode(&mut self) -> Result<(), LiveError> {
-        let mut config = self.session.config().clone();
-        config.env.max_episode_steps = self.step_limit;
-        config.damage.condition = ConditionChoice::Fixed(self.condition.env_condition());
+        let config = episode_config(self.session.config(), self.condition, self.step_limit);
         self.session.set_config(config);
         self.session
             .set_fatigue_triggers(self.condition.fatigue_triggers());
