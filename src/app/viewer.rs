@@ -263,11 +263,16 @@ mod tests {
         let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let port = listener.local_addr().unwrap().port();
         assert!(check_reachable(&format!("rerun+http://127.0.0.1:{port}/proxy")).is_ok());
-        drop(listener);
-        let e = check_reachable(&format!("rerun+http://127.0.0.1:{port}/proxy"))
+        // Port 0 can never hold a listener; a just-closed port can (sandboxed network
+        // stacks keep accepting for a moment, and the port may be handed out again).
+        let e = check_reachable("rerun+http://127.0.0.1:0/proxy")
             .unwrap_err()
             .to_string();
         assert!(e.contains("no Rerun viewer is listening"), "{e}");
+        let e = check_reachable("rerun+http://no-port-given/proxy")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("cannot resolve 'no-port-given'"), "{e}");
     }
 
     #[test]
