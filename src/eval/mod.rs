@@ -112,10 +112,20 @@ pub struct EvalReport {
     pub cells: Vec<CellSummary>,
     pub comparisons: Vec<Comparison>,
     /// Per encoder model: RF on success@500 against the baseline.
-    pub recovery_fraction: BTreeMap<String, Option<f64>>,
+    pub recovery_fraction: BTreeMap<String, RecoveryFraction>,
     /// Seconds spent per model.
     pub wall_time_s: BTreeMap<String, f64>,
     pub episodes: Vec<EpisodeRecord>,
+}
+
+/// RF on success@500 with the three rates it is computed from.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RecoveryFraction {
+    pub encoder_severe: f64,
+    pub baseline_severe: f64,
+    pub baseline_healthy: f64,
+    /// `None` when the baseline loses nothing under severe damage.
+    pub value: Option<f64>,
 }
 
 /// Label of a checkpoint in tables: its folder name.
@@ -343,15 +353,22 @@ fn summarize(
                     mcnemar: mcnemar(pairs),
                 });
             }
-            let value = match (
+            if let (Some(es), Some(bs), Some(bh)) = (
                 rate(model, Condition::Severe),
                 rate(base, Condition::Severe),
                 rate(base, Condition::Healthy),
             ) {
-                (Some(es), Some(bs), Some(bh)) => recovery_fraction(es, bs, bh),
-                _ => None,
-            };
-            rf.insert(model.clone(), value);
+                let value = recovery_fraction(es, bs, bh);
+                rf.insert(
+                    model.clone(),
+                    RecoveryFraction {
+                        encoder_severe: es,
+                        baseline_severe: bs,
+                        baseline_healthy: bh,
+                        value,
+                    },
+                );
+            }
         }
     }
     EvalReport {
@@ -440,13 +457,22 @@ impl EvalReport {
                 );
             }
             for (model, rf) in &self.recovery_fraction {
-                s += &format!(
-                    "\nRecovery fraction of {model}: {}\n",
-                    rf.map_or(
-                        "undefined (the baseline loses nothing under severe damage)".into(),
-                        |v| format!("{v:.2}")
-                    )
+                let pct = |r: f64| format!("{:.0} %", 100.0 * r);
+                let (es, bs, bh) = (
+                    pct(rf.encoder_severe),
+                    pct(rf.baseline_severe),
+                    pct(rf.baseline_healthy),
                 );
+                s += &match rf.value {
+                    Some(v) => format!(
+                        "\nRecovery fraction of {model}: {v:.2} = (encoder severe {es} − baseline \
+                         severe {bs}) / (baseline healthy {bh} − baseline severe {bs})\n"
+                    ),
+                    None => format!(
+                        "\nRecovery fraction of {model}: undefined, the baseline loses nothing under \
+                         severe damage (healthy {bh}, severe {bs}; encoder severe {es})\n"
+                    ),
+                };
             }
         }
         s
@@ -546,4 +572,55 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         (0.0, max_d * 1.1),
     )?;
     Ok(vec![json_path, success_path, distance_path])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn report_with(rf: RecoveryFraction) -> EvalReport {
+        EvalReport {
+            episodes_per_cell: 100,
+            max_steps: 500,
+            seeds: Vec::new(),
+            cells: Vec::new(),
+            comparisons: vec![Comparison {
+                baseline: "baseline".into(),
+                encoder: "encoder".into(),
+                condition: Condition::Severe,
+                mcnemar: mcnemar(std::iter::empty()),
+            }],
+            recovery_fraction: BTreeMap::from([("encoder".to_string(), rf)]),
+            wall_time_s: BTreeMap::new(),
+            episodes: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn recovery_fraction_line_shows_its_terms() {
+        // The paper's numbers: (86 − 70) / (83 − 70) = 1.23.
+        let md = report_with(RecoveryFraction {
+            encoder_severe: 0.86,
+            baseline_severe: 0.70,
+            baseline_healthy: 0.83,
+            value: recovery_fraction(0.86, 0.70, 0.83),
+        })
+        .markdown();
+        assert!(
+            md.contains("Recovery fraction of encoder: 1.23 = (encoder severe 86 % − baseline severe 70 %) / (baseline healthy 83 % − baseline severe 70 %)"),
+            "{md}"
+        );
+        // A baseline that gains under severe damage leaves nothing to recover.
+        let md = report_with(RecoveryFraction {
+            encoder_severe: 0.66,
+            baseline_severe: 0.82,
+            baseline_healthy: 0.54,
+            value: recovery_fraction(0.66, 0.82, 0.54),
+        })
+        .markdown();
+        assert!(
+            md.contains("undefined, the baseline loses nothing under severe damage (healthy 54 %, severe 82 %; encoder severe 66 %)"),
+            "{md}"
+        );
+    }
 }

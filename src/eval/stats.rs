@@ -126,14 +126,16 @@ pub fn mcnemar(pairs: impl IntoIterator<Item = (bool, bool)>) -> McNemar {
 }
 
 /// RF = (Enc_severe − Base_severe) / (Base_healthy − Base_severe): the share of the baseline's
-/// damage-induced loss that the encoder recovers. `None` when the baseline loses nothing.
+/// damage-induced loss that the encoder recovers. `None` when the baseline loses nothing: with
+/// no loss (or a gain) under severe damage there is nothing to recover, and a negative
+/// denominator would turn the ratio's meaning upside down.
 pub fn recovery_fraction(
     encoder_severe: f64,
     baseline_severe: f64,
     baseline_healthy: f64,
 ) -> Option<f64> {
     let loss = baseline_healthy - baseline_severe;
-    (loss.abs() > 1e-12).then(|| (encoder_severe - baseline_severe) / loss)
+    (loss > 1e-12).then(|| (encoder_severe - baseline_severe) / loss)
 }
 
 #[cfg(test)]
@@ -181,5 +183,8 @@ mod tests {
         let rf = recovery_fraction(0.86, 0.70, 0.83).unwrap();
         assert!((rf - 16.0 / 13.0).abs() < 1e-12);
         assert_eq!(recovery_fraction(0.9, 0.8, 0.8), None);
+        // A baseline that does better under severe damage (54 → 82 %) has lost nothing:
+        // (66 − 82) / (54 − 82) = 0.57 would read as a partial recovery.
+        assert_eq!(recovery_fraction(0.66, 0.82, 0.54), None);
     }
 }
