@@ -690,9 +690,10 @@ pub fn figures(
     let path = out.join("onset_latent_shift.png");
     plots::bands(
         &path,
-        "Latent shift ‖z − z̄_pre‖ at damage onset",
+        // Spelled out: plotters draws the combining macron of "z̄" as a separate glyph.
+        "Latent shift at damage onset: distance of z from its pre-onset mean",
         "steps since first trigger",
-        "‖z − z̄‖",
+        "‖z − mean z before onset‖",
         &[band("encoder", &xs, &shift)],
         Some(0.0),
     )?;
