@@ -688,7 +688,7 @@ fn live_command(args: LiveArgs) -> Result<()> {
         }
     }
     let panel = run_panel(&sim, checkpoints, args.exit_after);
-    let report = sim.shutdown();
+    let finished = sim.shutdown();
     let stats = panel?;
     eprintln!(
         "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
@@ -697,7 +697,13 @@ fn live_command(args: LiveArgs) -> Result<()> {
         stats.fps(),
         stats.mean_frame_cpu_ms
     );
-    for s in &report?.speeds {
+    // A viewer closed before the end leaves data unsent; the session's report still prints.
+    let (report, unflushed) = match finished {
+        Ok(report) => (report, None),
+        Err(app::LiveError::Unflushed { report, source }) => (*report, Some(source)),
+        Err(e) => return Err(e.into()),
+    };
+    for s in &report.speeds {
         eprintln!(
             "sim at {}×: {:.1} of {:.0} env steps/s ({:.0} % of real time asked for) over {:.1} s",
             s.speed,
@@ -710,7 +716,10 @@ fn live_command(args: LiveArgs) -> Result<()> {
     if let Some(path) = &args.save {
         eprintln!("session saved to {}", path.display());
     }
-    Ok(())
+    match unflushed {
+        Some(e) => Err(e.into()),
+        None => Ok(()),
+    }
 }
 
 #[cfg(feature = "live")]

@@ -3,7 +3,9 @@
 
 use candle_core::Device;
 use gaitscope::GaitConfig;
-use gaitscope::app::{Command, LIVE_ROOTS, LiveCondition, LiveSetup, SimHandle, Snapshot};
+use gaitscope::app::{
+    Command, LIVE_ROOTS, LiveCondition, LiveError, LiveSetup, SimHandle, Snapshot,
+};
 use gaitscope::damage::{JointOverride, JointState};
 use gaitscope::policy::checkpoint::TrainingRecord;
 use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, SacConfig, SacModel};
@@ -274,6 +276,48 @@ fn bad_settings_are_refused_before_anything_starts() {
     };
     assert!(none.validate().is_err());
     assert!(setup(dir.path(), LiveCondition::Severe).validate().is_ok());
+}
+
+/// A viewer that vanished (here: never listened) cannot take the last data; the session still
+/// reports what it did, and the `--save` file has every step.
+#[test]
+fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint(dir.path());
+    // A free port: bound, then released, so nothing listens there.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .unwrap()
+        .port();
+    let save = dir.path().join("session.rrd");
+    let sink = Sink::Viewer {
+        url: format!("rerun+http://127.0.0.1:{port}/proxy"),
+        save: Some(save.clone()),
+    };
+    let roots: Vec<String> = LIVE_ROOTS.iter().map(|r| r.to_string()).collect();
+    let (rec, _) = open(&sink, "gaitscope-live-unflushed", &roots).unwrap();
+    let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+    for _ in 0..3 {
+        step_once(&sim);
+    }
+    match sim.shutdown() {
+        Err(LiveError::Unflushed { report, source }) => {
+            assert_eq!(report.steps, 3, "the report survives the failed flush");
+            assert_eq!(report.episodes, 1);
+            assert!(source.to_string().contains("viewer"), "{source}");
+        }
+        other => panic!("expected an unflushed-session error, got {other:?}"),
+    }
+    let file = std::io::BufReader::new(std::fs::File::open(&save).unwrap());
+    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
+        .map_while(Result::ok)
+        .collect();
+    let distance: usize = common::recording_chunks(msgs)
+        .iter()
+        .filter(|c| c.entity_path().to_string() == format!("/{}/goal/distance", LIVE_ROOTS[0]))
+        .map(Chunk::num_rows)
+        .sum();
+    assert_eq!(distance, 3, "every step reached the file");
 }
 
 #[cfg(feature = "live")]

@@ -165,6 +165,12 @@ pub enum LiveError {
     SimThreadPanicked,
     #[error("starting the simulation thread: {0}")]
     ThreadStart(std::io::Error),
+    /// The session ran, but its last data did not reach every sink (a closed viewer).
+    #[error("{source}")]
+    Unflushed {
+        report: Box<SimReport>,
+        source: crate::telemetry::TelemetryError,
+    },
 }
 
 /// Frame statistics of the panel window, for the frame-rate report.

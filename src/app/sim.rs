@@ -397,13 +397,19 @@ impl Sim {
         snapshot.stopped = true;
         *lock(&shared) = snapshot;
         let report = self.report();
-        if flushed.is_err() {
-            // Rerun's stream blocks on drop until a viewer takes its data; a viewer that is gone
-            // never will. Leave the stream to process exit rather than hang the program.
-            std::mem::forget(self.session);
+        match flushed {
+            Ok(()) => Ok(report),
+            Err(source) => {
+                // Rerun's stream blocks on drop until a viewer takes its data; a viewer that is
+                // gone never will. Leave the stream to process exit rather than hang the program.
+                std::mem::forget(self.session);
+                // The report travels with the error: what the session did is still worth saying.
+                Err(LiveError::Unflushed {
+                    report: Box::new(report),
+                    source,
+                })
+            }
         }
-        flushed?;
-        Ok(report)
     }
 
     fn report(&self) -> SimReport {
