@@ -166,7 +166,7 @@ pub enum LiveError {
     #[error("starting the simulation thread: {0}")]
     ThreadStart(std::io::Error),
     /// The session ran, but its last data did not reach every sink (a closed viewer).
-    #[error("{source}")]
+    #[error("the live session's last data did not reach every sink")]
     Unflushed {
         report: Box<SimReport>,
         source: crate::telemetry::TelemetryError,
