@@ -52,9 +52,13 @@ fn setup(dir: &Path, condition: LiveCondition) -> LiveSetup {
     }
 }
 
+/// Every lane's entity root, as the live command streams them.
+fn live_roots() -> Vec<String> {
+    LIVE_ROOTS.iter().map(|r| r.to_string()).collect()
+}
+
 fn memory_stream() -> (rerun::RecordingStream, rerun::sink::MemorySinkStorage) {
-    let roots: Vec<String> = LIVE_ROOTS.iter().map(|r| r.to_string()).collect();
-    let (rec, storage) = open(&Sink::Memory, "gaitscope-live-test", &roots).unwrap();
+    let (rec, storage) = open(&Sink::Memory, "gaitscope-live-test", &live_roots()).unwrap();
     (rec, storage.unwrap())
 }
 
@@ -294,8 +298,7 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
         url: format!("rerun+http://127.0.0.1:{port}/proxy"),
         save: Some(save.clone()),
     };
-    let roots: Vec<String> = LIVE_ROOTS.iter().map(|r| r.to_string()).collect();
-    let (rec, _) = open(&sink, "gaitscope-live-unflushed", &roots).unwrap();
+    let (rec, _) = open(&sink, "gaitscope-live-unflushed", &live_roots()).unwrap();
     let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
     for _ in 0..3 {
         step_once(&sim);
