@@ -1,6 +1,9 @@
 //! The `gaitscope` binary: summaries, the replay formats (checked against the Gymnasium
 //! fixture), and clear errors for bad files and flags.
 
+#[path = "common/gymnasium.rs"]
+mod gymnasium;
+
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -18,12 +21,6 @@ fn stdout(out: &Output) -> String {
 
 fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-fn fixture() -> Value {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/fixtures/gymnasium_ant_v4_mild_parity.json");
-    serde_json::from_str(&std::fs::read_to_string(path).expect("fixture readable")).unwrap()
 }
 
 fn write(dir: &Path, name: &str, text: &str) -> String {
@@ -95,8 +92,14 @@ fn text_summary_names_condition_and_triggers() {
 }
 
 #[test]
-fn replay_reproduces_the_gymnasium_fixture() {
-    let fx = fixture();
+fn replay_reproduces_the_gymnasium_fixtures() {
+    for (condition, path) in gymnasium::fixtures() {
+        let fx: Value = serde_json::from_str(&gymnasium::read(&path)).unwrap();
+        replay_reproduces(condition, &fx);
+    }
+}
+
+fn replay_reproduces(condition: &str, fx: &Value) {
     let dir = tempfile::tempdir().unwrap();
     let init = serde_json::json!({"qpos": fx["init_qpos"], "qvel": fx["init_qvel"]});
     let actions: Vec<Value> = fx["steps"]
@@ -114,20 +117,20 @@ fn replay_reproduces_the_gymnasium_fixture() {
     let out = gaitscope(&[
         "rollout",
         "--condition",
-        "mild",
+        condition,
         "--init-state",
         &init_path,
         "--actions",
         &actions_path,
         "--jsonl",
     ]);
-    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(out.status.success(), "{condition}: {}", stderr(&out));
     let ours: Vec<Value> = stdout(&out)
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
     let theirs = fx["steps"].as_array().unwrap();
-    assert_eq!(ours.len(), theirs.len());
+    assert_eq!(ours.len(), theirs.len(), "{condition}: steps");
     for (o, t) in ours.iter().zip(theirs) {
         for field in [
             "obs",
@@ -147,13 +150,13 @@ fn replay_reproduces_the_gymnasium_fixture() {
             for (a, b) in flat(&o[field]).iter().zip(flat(&t[field])) {
                 assert!(
                     (a - b).abs() <= 1e-9 * b.abs().max(1.0),
-                    "{field} at step {}: {a} vs {b}",
+                    "{condition}: {field} at step {}: {a} vs {b}",
                     o["step"]
                 );
             }
         }
         for field in ["step", "terminated", "truncated", "triggered"] {
-            assert_eq!(o[field], t[field], "{field}");
+            assert_eq!(o[field], t[field], "{condition}: {field}");
         }
     }
 }

@@ -1,9 +1,11 @@
 //! Our physics, reward and fatigue against Gymnasium 1.4.0's Ant-v4 (MuJoCo 3.17.0) with the
-//! goal task and fatigue model, from `../shared/fixtures/` (see its README).
+//! goal task and fatigue model written in Python from the spec (`tests/fixtures/`).
+
+#[path = "common/gymnasium.rs"]
+mod gymnasium;
 
 use gaitscope::{AntEnv, Condition, GaitConfig};
 use serde::Deserialize;
-use std::path::PathBuf;
 
 #[derive(Deserialize)]
 struct Fixture {
@@ -31,14 +33,6 @@ struct FixtureStep {
     qvel: Vec<f64>,
 }
 
-fn fixture() -> Fixture {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/fixtures/gymnasium_ant_v4_mild_parity.json");
-    let text = std::fs::read_to_string(&path)
-        .unwrap_or_else(|e| panic!("fixture {} unreadable: {e}", path.display()));
-    serde_json::from_str(&text).expect("fixture parses")
-}
-
 fn assert_close(what: &str, step: usize, ours: &[f64], theirs: &[f64], tol: f64) {
     assert_eq!(ours.len(), theirs.len(), "{what} length at step {step}");
     for (i, (a, b)) in ours.iter().zip(theirs).enumerate() {
@@ -51,19 +45,33 @@ fn assert_close(what: &str, step: usize, ours: &[f64], theirs: &[f64], tol: f64)
 }
 
 #[test]
-fn reproduces_gymnasium_ant_v4_with_goal_and_fatigue() {
-    let fx = fixture();
-    assert_eq!(fx.condition, Condition::Mild);
+fn reproduces_gymnasium_ant_v4_under_mild_damage() {
+    reproduces_fixture(Condition::Mild);
+}
+
+#[test]
+fn reproduces_gymnasium_ant_v4_under_severe_damage_with_clipped_actions() {
+    reproduces_fixture(Condition::Severe);
+}
+
+fn reproduces_fixture(condition: Condition) {
+    let (_, path) = gymnasium::fixtures()
+        .into_iter()
+        .find(|(c, _)| *c == condition.name())
+        .expect("a fixture per condition");
+    let fx: Fixture = serde_json::from_str(&gymnasium::read(&path)).expect("fixture parses");
+    assert_eq!(fx.condition, condition);
     let config = GaitConfig::default();
-    assert_eq!(config.damage.scales.mild, fx.damage_scale);
+    assert_eq!(condition.scale(&config.damage.scales), fx.damage_scale);
     let mut env = AntEnv::new(config, 0).unwrap();
     let obs = env
         .reset_to_state(&fx.init_qpos, &fx.init_qvel, fx.condition)
         .unwrap();
     const TOL: f64 = 1e-9;
     assert_close("init obs", 0, &obs, &fx.init_obs, TOL);
-    let mut any_trigger = false;
+    let mut clipped = false;
     for s in &fx.steps {
+        clipped |= s.action.iter().any(|a| a.abs() > 1.0);
         let out = env.step(&s.action).unwrap();
         assert_eq!(out.step, s.step);
         assert_close("qpos", s.step, env.qpos(), &s.qpos, TOL);
@@ -91,10 +99,18 @@ fn reproduces_gymnasium_ant_v4_with_goal_and_fatigue() {
             "done at {}",
             s.step
         );
-        any_trigger |= s.triggered.iter().any(|&t| t);
         if out.terminated || out.truncated {
             break;
         }
     }
-    assert!(any_trigger, "the fixture exercises at least one trigger");
+    let last = fx.steps.last().expect("the fixture has steps");
+    assert!(
+        last.triggered.iter().all(|&t| t),
+        "the fixture exercises every joint's trigger"
+    );
+    assert_eq!(
+        clipped,
+        condition == Condition::Severe,
+        "the severe fixture exercises clipping"
+    );
 }
