@@ -199,3 +199,74 @@ fn exported_file_decodes() {
     assert!(steps >= 1, "the exported recording has steps");
     eprintln!("{path}: {} chunks, {steps} steps", chunks.len());
 }
+
+/// Side by side, a lane whose episode ends first waits for the other: its series must show a
+/// gap there (a `Clear` right after its last step, then nothing until its next episode), not a
+/// line drawn across steps it never ran.
+#[test]
+fn a_lane_that_ends_early_leaves_a_gap_not_a_line() {
+    let mut opts = options(Sink::Memory);
+    opts.actors = vec![
+        Actor::Builtin(BuiltinPolicy::Random),
+        Actor::Builtin(BuiltinPolicy::Zero),
+    ];
+    opts.episodes = 2;
+    // Episode lengths from independent rollouts of each policy on the recording's seed.
+    let length = |policy: BuiltinPolicy| {
+        let mut env = AntEnv::new(config(), SEED).unwrap();
+        env.reset_with_seed(SEED);
+        let mut rng = policy_rng(SEED);
+        (1..)
+            .find(|_| env.step(&policy.act(&mut rng)).unwrap().done())
+            .unwrap() as i64
+    };
+    let (random_len, zero_len) = (length(BuiltinPolicy::Random), length(BuiltinPolicy::Zero));
+    assert!(
+        random_len < zero_len,
+        "the random lane ends first ({random_len} vs {zero_len} steps)"
+    );
+    let summary = record(opts, &AtomicBool::new(false)).unwrap();
+    let chunks = chunks(summary.storage.unwrap().take());
+    let scalars = rerun::Scalars::descriptor_scalars().component;
+    let clear = rerun::Clear::descriptor_is_recursive().component;
+    for entity in gaitscope::telemetry::SERIES_ENTITIES {
+        let path = format!("/random/{entity}");
+        let data: Vec<i64> = common::per_step(&chunks, &path, |c| {
+            c.iter_slices::<f64>(scalars).map(|s| s.len()).collect()
+        })
+        .into_iter()
+        .filter(|(_, n)| *n > 0)
+        .map(|(t, _)| t)
+        .collect();
+        let clears: Vec<i64> = common::per_step(&chunks, &path, |c| {
+            c.iter_slices::<bool>(clear).map(|s| s.len()).collect()
+        })
+        .into_iter()
+        .filter(|(_, n)| *n > 0)
+        .map(|(t, _)| t)
+        .collect();
+        if data.is_empty() {
+            continue; // latent/probe series: a built-in policy has no z
+        }
+        // Episode 0 runs global steps 1..=zero_len for the slower lane; episode 1 is reset at
+        // zero_len (τ is logged there) and steps from zero_len + 1.
+        assert!(
+            data.iter().all(|&t| t <= random_len || t >= zero_len),
+            "{path}: data inside the gap ({random_len}, {zero_len})"
+        );
+        assert!(
+            data.contains(&random_len),
+            "{path}: the lane's last step is logged"
+        );
+        assert_eq!(
+            clears,
+            [random_len + 1],
+            "{path}: one gap, right after the last step"
+        );
+    }
+    // The lane that ran to the end has no gap.
+    let zero_clears = common::per_step(&chunks, "/zero/joints/fatigue", |c| {
+        c.iter_slices::<bool>(clear).map(|s| s.len()).collect()
+    });
+    assert!(zero_clears.iter().all(|(_, n)| *n == 0), "{zero_clears:?}");
+}

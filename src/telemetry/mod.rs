@@ -43,6 +43,21 @@ pub const APP_ID: &str = "gaitscope";
 /// Log the trail (torso path, PCA path) every this many steps: bounded bytes per step.
 pub const TRAIL_EVERY: usize = 5;
 
+/// The time-series entities under a lane's root (what [`AntLogger::log_series_gap`] breaks).
+pub const SERIES_ENTITIES: [&str; 11] = [
+    "joints/fatigue",
+    "joints/scale",
+    "joints/threshold",
+    "actions/commanded",
+    "actions/applied",
+    "reward",
+    "goal/distance",
+    "goal/progress_rate",
+    "latent/z",
+    "probe/predicted",
+    "probe/truth",
+];
+
 #[derive(Debug, thiserror::Error)]
 pub enum TelemetryError {
     #[error("rerun: {0}")]
@@ -448,6 +463,17 @@ impl AntLogger {
             self.path("episode").as_str(),
             &rerun::TextDocument::from_markdown(text),
         )?;
+        Ok(())
+    }
+
+    /// Ends every time series of this lane at the current time: the viewer breaks a line at a
+    /// `Clear`, so a lane that waits for the others (its episode ended early) shows a gap until
+    /// its next episode instead of a straight line across steps it never ran.
+    pub fn log_series_gap(&self) -> Result<(), TelemetryError> {
+        for entity in SERIES_ENTITIES {
+            self.rec
+                .log(self.path(entity).as_str(), &rerun::Clear::flat())?;
+        }
         Ok(())
     }
 

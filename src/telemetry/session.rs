@@ -300,6 +300,7 @@ impl Session {
         }
         self.global_step += 1;
         let episode = self.episodes_started.saturating_sub(1);
+        let mut ended = Vec::new();
         for i in 0..self.lanes.len() {
             if self.lanes[i].done {
                 continue;
@@ -316,8 +317,17 @@ impl Session {
                 lane.done = true;
                 let meta = episode_meta(self.fatigue_triggers, self.seed, &lane.actor, &lane.env);
                 lane.logger.log_episode(&meta, &lane.env, Some(&out))?;
+                ended.push(i);
             }
             self.lanes[i].last = Some(out);
+        }
+        // A lane that ended while others run waits for them: its series stop here.
+        if !self.is_over() {
+            for i in ended {
+                let logger = &self.lanes[i].logger;
+                logger.set_time(self.global_step + 1, episode);
+                logger.log_series_gap()?;
+            }
         }
         Ok(self.is_over())
     }
