@@ -1,0 +1,108 @@
+#!/usr/bin/env bash
+# The evidence runs: seeds 1 and 2 of every model, 500k steps each, the protocol of seed 0
+# (`gaitscope train` defaults). Two lanes, one per core, at nice 19, so they only take what
+# foreground work leaves. Each run resumes from its last checkpoint (every 10,000 steps), so
+# `start` is the same command on the first day and on a fresh machine after a clone.
+#
+#   scripts/seed-runs.sh start    # build, then run/resume both lanes in the background
+#   scripts/seed-runs.sh status   # steps done per run, and what is running
+#   scripts/seed-runs.sh stop     # Ctrl-C each trainer (it saves a checkpoint), stop the lanes
+#   scripts/seed-runs.sh pause|cont   # SIGSTOP/SIGCONT the trainers (for benchmarks)
+#
+# Runs live in checkpoints/seeds/<model>-s<seed>; commit everything there but replay.bin.
+set -euo pipefail
+
+root=$(cd "$(dirname "$0")/.." && pwd)
+seeds_dir="$root/checkpoints/seeds"
+state="$root/.deps/seed-runs"   # git-ignored: the binary copy, pids and logs
+steps=500000
+
+# Lane 0 carries the long LSTM runs; lane 1 the rest (about the same core-hours in all).
+lane_runs() {
+  case $1 in
+    0) echo "encoder-lstm-s1 encoder-lstm-s2" ;;
+    1) echo "baseline-s1 encoder-mlp-s1 baseline-s2 encoder-mlp-s2" ;;
+  esac
+}
+
+encoder_of() {
+  case $1 in
+    baseline-*) echo none ;;
+    encoder-lstm-*) echo lstm ;;
+    encoder-mlp-*) echo mlp-window ;;
+  esac
+}
+
+steps_done() {
+  local json="$seeds_dir/$1/checkpoint.json"
+  [ -f "$json" ] || { echo 0; return; }
+  python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["steps_done"])' "$json"
+}
+
+# run_lane N: trains the lane's runs one after another, pinned to core N.
+run_lane() {
+  local core=$1 run dir
+  for run in $(lane_runs "$core"); do
+    [ -e "$state/stop" ] && return 0
+    dir="$seeds_dir/$run"
+    if [ "$(steps_done "$run")" -ge "$steps" ]; then
+      continue
+    fi
+    local args
+    if [ -f "$dir/checkpoint.json" ]; then
+      args=(--resume "$dir")
+    else
+      args=(--encoder "$(encoder_of "$run")" --seed "${run##*-s}" --out "$dir")
+    fi
+    echo "$(date -u +%FT%TZ) lane $core: ${args[*]}"
+    # `exec`-free so the lane survives to start the next run; the trainer's pid is kept for stop.
+    nice -n 19 taskset -c "$core" "$state/gaitscope" train "${args[@]}" --steps "$steps" --quiet &
+    echo $! >"$state/trainer-$core.pid"
+    wait $! || echo "$(date -u +%FT%TZ) lane $core: $run exited with $?"
+    rm -f "$state/trainer-$core.pid"
+  done
+  echo "$(date -u +%FT%TZ) lane $core: done"
+}
+
+trainer_pids() {
+  cat "$state"/trainer-*.pid 2>/dev/null || true
+}
+
+case "${1:-status}" in
+  start)
+    if [ -n "$(trainer_pids)" ]; then
+      echo "seed runs already going (scripts/seed-runs.sh status)"; exit 1
+    fi
+    mkdir -p "$state" "$seeds_dir"
+    rm -f "$state/stop"
+    (cd "$root" && ${CARGO:-cargo} build --release --quiet)
+    # A copy, so later builds never change the binary under a running trainer.
+    cp "${CARGO_TARGET_DIR:-$root/target}/release/gaitscope" "$state/gaitscope.tmp"
+    mv "$state/gaitscope.tmp" "$state/gaitscope"
+    for core in 0 1; do
+      nohup bash "$0" _lane "$core" >>"$state/lane-$core.log" 2>&1 &
+    done
+    echo "seed runs started; logs in $state/lane-{0,1}.log"
+    ;;
+  _lane) run_lane "$2" ;;
+  stop)
+    mkdir -p "$state"
+    touch "$state/stop"
+    for pid in $(trainer_pids); do kill -CONT "$pid" 2>/dev/null || true; kill -INT "$pid" 2>/dev/null || true; done
+    for pid in $(trainer_pids); do
+      while kill -0 "$pid" 2>/dev/null; do sleep 1; done
+    done
+    echo "seed runs stopped (each saved a checkpoint)"
+    ;;
+  pause) for pid in $(trainer_pids); do kill -STOP "$pid"; done ;;
+  cont) for pid in $(trainer_pids); do kill -CONT "$pid"; done ;;
+  status)
+    for core in 0 1; do
+      for run in $(lane_runs "$core"); do
+        printf '%-18s %7s / %s steps\n' "$run" "$(steps_done "$run")" "$steps"
+      done
+    done
+    for pid in $(trainer_pids); do ps -o pid=,etime=,args= -p "$pid" || true; done
+    ;;
+  *) echo "usage: $0 start|status|stop|pause|cont" >&2; exit 2 ;;
+esac
