@@ -209,9 +209,10 @@ pub struct TrainBenchRow {
 pub fn bench_train(
     encoders: &[crate::policy::EncoderKind],
     steps: u64,
+    update: crate::train::sac::UpdatePath,
     scratch: &std::path::Path,
 ) -> Result<Vec<TrainBenchRow>, crate::train::TrainError> {
-    use crate::policy::{ActionMode, SacModel};
+    use crate::policy::SacModel;
     use crate::train::replay::{Batch, ReplayBuffer, Transition};
     use crate::train::sac::SacLearner;
     use crate::train::{self, AntTask, Task};
@@ -228,6 +229,7 @@ pub fn bench_train(
         opts.save_replay = false;
         opts.progress_bar = false;
         opts.checkpoint_every = u64::MAX;
+        opts.update = update;
         let summary = train::train_ant(opts.clone(), false, Arc::new(AtomicBool::new(false)))?;
         let _ = std::fs::remove_dir_all(&dir);
 
@@ -236,6 +238,7 @@ pub fn bench_train(
         let device = candle_core::Device::Cpu;
         let model = SacModel::new(net.clone(), 1.0, 0, &device)?;
         let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
+        learner.set_update_path(update)?;
         let window_len = if encoder.uses_window() {
             net.context_len
         } else {
@@ -282,14 +285,7 @@ pub fn bench_train(
         let start = Instant::now();
         let n_act = 2_000;
         for _ in 0..n_act {
-            learner.model.actor.decide(
-                &net,
-                &device,
-                &obs32,
-                encoder.uses_window().then_some(&window[..]),
-                ActionMode::Sampled,
-                Some(&noise),
-            )?;
+            learner.explore(&obs32, encoder.uses_window().then_some(&window[..]), &noise)?;
         }
         let act_per_s = n_act as f64 / start.elapsed().as_secs_f64();
         rows.push(TrainBenchRow {

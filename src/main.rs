@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use gaitscope::bench::bench_env;
 use gaitscope::policy::EncoderKind;
 use gaitscope::rollout::{self, BuiltinPolicy};
-use gaitscope::train;
+use gaitscope::train::{self, sac::UpdatePath};
 use gaitscope::{AntEnv, Condition, ConditionChoice, GaitConfig};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -320,6 +320,12 @@ enum BenchCommand {
         steps: u64,
         #[arg(long, value_enum, num_args = 1.., default_values_t = [EncoderKind::None, EncoderKind::Lstm, EncoderKind::MlpWindow])]
         encoders: Vec<EncoderKind>,
+        /// The update to time: fused (what `train` runs) or reference (candle's autograd).
+        #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
+        update: UpdatePath,
+        /// One JSON object per encoder instead of the table.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -434,14 +440,25 @@ fn run(cli: Cli) -> Result<()> {
             );
             Ok(())
         }
-        Command::Bench(BenchCommand::Train { steps, encoders }) => {
+        Command::Bench(BenchCommand::Train {
+            steps,
+            encoders,
+            update,
+            json,
+        }) => {
             if steps == 0 {
                 bail!("--steps must be at least 1");
             }
             let scratch =
                 std::env::temp_dir().join(format!("gaitscope-bench-{}", std::process::id()));
-            let rows = gaitscope::bench::bench_train(&encoders, steps, &scratch)?;
+            let rows = gaitscope::bench::bench_train(&encoders, steps, update, &scratch)?;
             let _ = std::fs::remove_dir_all(&scratch);
+            if json {
+                for r in &rows {
+                    println!("{}", serde_json::to_string(r)?);
+                }
+                return Ok(());
+            }
             println!("encoder     train steps/s  updates/s (no env)  act/s (batch 1)");
             for r in rows {
                 println!(

@@ -2,6 +2,7 @@
 //! the trained policy achieves, never on losses.
 
 use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, Policy, SacConfig};
+use gaitscope::train::sac::UpdatePath;
 use gaitscope::train::{self, Task, TaskStep, TrainError, TrainOptions};
 use gaitscope::{ContextWindow, GaitConfig};
 use rand::{Rng, SeedableRng};
@@ -107,6 +108,7 @@ fn options(encoder: EncoderKind, steps: u64, out: std::path::PathBuf) -> TrainOp
         save_replay: false,
         log_every: 500,
         progress_bar: false,
+        update: UpdatePath::Fused,
     }
 }
 

@@ -9,6 +9,8 @@
 
 use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor, bail};
 
+use super::gemm::matmul;
+
 /// Gate order (PyTorch's): input, forget, cell, output.
 #[derive(Debug, Clone, Copy)]
 pub struct LstmRecurrence;
@@ -174,7 +176,7 @@ mod simd {
     }
 }
 
-fn step_forward(g: &mut [f32], cp: &[f32], cn: &mut [f32], hn: &mut [f32], h: usize) {
+pub(crate) fn step_forward(g: &mut [f32], cp: &[f32], cn: &mut [f32], hn: &mut [f32], h: usize) {
     #[cfg(target_arch = "x86_64")]
     if simd::available() {
         // SAFETY: the CPU has AVX2 and FMA (just checked).
@@ -183,7 +185,7 @@ fn step_forward(g: &mut [f32], cp: &[f32], cn: &mut [f32], hn: &mut [f32], h: us
     cells_forward(g, cp, cn, hn, h)
 }
 
-fn step_backward(
+pub(crate) fn step_backward(
     a: &[f32],
     cp: &[f32],
     c: &[f32],
@@ -198,48 +200,6 @@ fn step_backward(
         return unsafe { simd::cells_backward(a, cp, c, dh, dc, dg, h) };
     }
     cells_backward(a, cp, c, dh, dc, dg, h)
-}
-
-/// `out (m×n) = [out +] a (m×k) · b (k×n)`, row-major unless strides say otherwise.
-#[allow(clippy::too_many_arguments)]
-fn matmul(
-    out: &mut [f32],
-    accumulate: bool,
-    (m, n, k): (usize, usize, usize),
-    a: &[f32],
-    (a_rs, a_cs): (usize, usize),
-    b: &[f32],
-    (b_rs, b_cs): (usize, usize),
-) {
-    let last = |rows: usize, cols: usize, rs: usize, cs: usize| (rows - 1) * rs + (cols - 1) * cs;
-    assert!(
-        out.len() >= m * n && a.len() > last(m, k, a_rs, a_cs) && b.len() > last(k, n, b_rs, b_cs)
-    );
-    // SAFETY: the assert bounds every index gemm touches: dst m×n row-major, lhs m×k and rhs
-    // k×n with the given strides, all within their slices; the slices do not alias.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            out.as_mut_ptr(),
-            1,
-            n as isize,
-            accumulate,
-            a.as_ptr(),
-            a_cs as isize,
-            a_rs as isize,
-            b.as_ptr(),
-            b_cs as isize,
-            b_rs as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
-    }
 }
 
 /// Everything the forward produced, per step, for the backward.

@@ -11,6 +11,7 @@
 //! without gradient).
 
 pub mod checkpoint;
+pub(crate) mod gemm;
 pub mod layers;
 pub mod lstm_kernel;
 

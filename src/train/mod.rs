@@ -8,6 +8,7 @@
 
 pub mod adam;
 pub mod curves;
+pub mod fused;
 pub mod replay;
 pub mod sac;
 
@@ -29,11 +30,11 @@ use crate::env::{AntEnv, EnvError};
 use crate::policy::checkpoint::{
     self, CheckpointError, TrainingRecord, load_expected_tensors, safetensors_bytes, write_atomic,
 };
-use crate::policy::{ActionMode, EncoderKind, NetConfig, SacConfig, SacModel};
+use crate::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
 use crate::window::ContextWindow;
 use adam::Adam;
 use replay::{Batch, ReplayBuffer, Transition};
-use sac::{SacLearner, UpdateStats};
+use sac::{SacLearner, UpdatePath, UpdateStats};
 
 pub const STATE_FILE: &str = "train_state.json";
 pub const OPTIMIZER_FILE: &str = "train_state.safetensors";
@@ -78,6 +79,8 @@ pub struct TrainOptions {
     /// Log update losses every this many env steps.
     pub log_every: u64,
     pub progress_bar: bool,
+    /// Fused (the fast path) or candle's autograd; the same algorithm.
+    pub update: UpdatePath,
 }
 
 /// One env step as the trainer sees it.
@@ -216,6 +219,7 @@ pub fn train(
         truncate_metrics(&opts.out, 0)?;
         (learner, state, replay)
     };
+    learner.set_update_path(opts.update)?;
     let net = opts.net.clone();
     let mut metrics = MetricsLog::open(&opts.out)?;
     let progress = progress_bar(&opts, state.steps_done);
@@ -260,19 +264,7 @@ pub fn train(
             } else {
                 None
             };
-            let decision = learner.model.actor.decide(
-                &net,
-                &device,
-                &obs32,
-                window_arg,
-                ActionMode::Sampled,
-                Some(&noise),
-            )?;
-            decision
-                .into_iter()
-                .next()
-                .map(|d| d.action)
-                .unwrap_or_default()
+            learner.explore(&obs32, window_arg, &noise)?
         };
 
         // Step the env and store the transition.
@@ -355,7 +347,7 @@ pub fn train(
             && state.steps_done < opts.total_steps
         {
             state.wall_time_s = wall_before + elapsed;
-            save_run(&opts, &learner, &mut state, &replay)?;
+            save_run(&opts, &mut learner, &mut state, &replay)?;
         }
     }
 
@@ -364,7 +356,7 @@ pub fn train(
         .map(|(from, at)| (state.steps_done - from) as f64 / at.elapsed().as_secs_f64().max(1e-9));
     let elapsed = started.elapsed().as_secs_f64();
     state.wall_time_s = wall_before + elapsed;
-    save_run(&opts, &learner, &mut state, &replay)?;
+    save_run(&opts, &mut learner, &mut state, &replay)?;
     if let Some(bar) = progress {
         bar.finish_with_message(
             recent.describe((state.steps_done - start_step) as f64 / elapsed.max(1e-9)),
@@ -415,7 +407,7 @@ fn validate_fresh(opts: &TrainOptions, task: &impl Task) -> Result<(), TrainErro
 /// Writes weights, optimiser state, RNGs and (optionally) the replay buffer.
 fn save_run(
     opts: &TrainOptions,
-    learner: &SacLearner,
+    learner: &mut SacLearner,
     state: &mut TrainState,
     replay: &ReplayBuffer,
 ) -> Result<(), TrainError> {
@@ -427,6 +419,7 @@ fn save_run(
         episodes_done: state.episodes_done,
         wall_time_s: state.wall_time_s,
     };
+    learner.sync_model()?;
     // Optimiser state and replay first, JSON state last: a crash in between leaves the previous
     // train_state.json, whose CRC no longer matches the new weights, and resume says so.
     let optimizers = [&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt];
@@ -485,61 +478,12 @@ fn resume_run(
     device: &Device,
 ) -> Result<(SacLearner, TrainState, ReplayBuffer), TrainError> {
     let dir = opts.out.clone();
-    let (model, meta) = SacModel::load(&dir, Some(opts.net.encoder), device)?;
+    let (learner, state, meta) = load_run(&dir, Some(opts.net.encoder), device)?;
     // The run's own settings win over the command line's, except the total step count.
     opts.net = meta.net.clone();
     opts.sac = meta.sac.clone();
     opts.env = meta.env.clone();
     opts.seed = meta.seed;
-    let state_path = dir.join(STATE_FILE);
-    let text = std::fs::read_to_string(&state_path).map_err(|e| TrainError::State {
-        path: state_path.clone(),
-        reason: format!("cannot read ({e}); was this folder written by `gaitscope train`?"),
-    })?;
-    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::State {
-        path: state_path.clone(),
-        reason: e.to_string(),
-    })?;
-    if state.model_crc32 != meta.model_crc32 || state.steps_done != meta.steps_done {
-        return Err(TrainError::State {
-            path: state_path,
-            reason: "does not belong to the weights next to it (interrupted save?)".into(),
-        });
-    }
-    let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
-    let opt_path = dir.join(OPTIMIZER_FILE);
-    let bytes = std::fs::read(&opt_path).map_err(|source| CheckpointError::Read {
-        path: opt_path.clone(),
-        source,
-    })?;
-    let expected: BTreeMap<String, Vec<usize>> =
-        optimizer_tensors(&[&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt])?
-            .into_iter()
-            .map(|(n, t)| (n, t.dims().to_vec()))
-            .collect();
-    let tensors =
-        load_expected_tensors(&dir, &opt_path, &bytes, &expected, opts.net.encoder, device)?;
-    for ((group, opt), t) in ["actor", "critic", "alpha"]
-        .iter()
-        .zip([
-            &mut learner.actor_opt,
-            &mut learner.critic_opt,
-            &mut learner.alpha_opt,
-        ])
-        .zip(state.adam_steps)
-    {
-        let moments = (0..opt.len())
-            .map(|i| {
-                let get = |s: &str| tensors[&format!("{group}.{i:03}.{s}")].to_vec1::<f32>();
-                Ok((get("m")?, get("v")?))
-            })
-            .collect::<Result<Vec<_>, candle_core::Error>>()?;
-        opt.set_moments(t, moments)
-            .map_err(|reason| TrainError::State {
-                path: opt_path.clone(),
-                reason,
-            })?;
-    }
     let net = &opts.net;
     let window_len = if net.encoder.uses_window() {
         net.context_len
@@ -566,6 +510,69 @@ fn resume_run(
     }
     truncate_metrics(&dir, state.steps_done)?;
     Ok((learner, state, replay))
+}
+
+/// A run's learner as it was saved: weights, and the optimisers' moments and step counts.
+pub fn load_learner(dir: &Path, device: &Device) -> Result<SacLearner, TrainError> {
+    Ok(load_run(dir, None, device)?.0)
+}
+
+fn load_run(
+    dir: &Path,
+    encoder: Option<EncoderKind>,
+    device: &Device,
+) -> Result<(SacLearner, TrainState, checkpoint::CheckpointMeta), TrainError> {
+    let (model, meta) = SacModel::load(dir, encoder, device)?;
+    let state_path = dir.join(STATE_FILE);
+    let text = std::fs::read_to_string(&state_path).map_err(|e| TrainError::State {
+        path: state_path.clone(),
+        reason: format!("cannot read ({e}); was this folder written by `gaitscope train`?"),
+    })?;
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::State {
+        path: state_path.clone(),
+        reason: e.to_string(),
+    })?;
+    if state.model_crc32 != meta.model_crc32 || state.steps_done != meta.steps_done {
+        return Err(TrainError::State {
+            path: state_path,
+            reason: "does not belong to the weights next to it (interrupted save?)".into(),
+        });
+    }
+    let mut learner = SacLearner::new(model, meta.sac.clone(), device.clone());
+    let opt_path = dir.join(OPTIMIZER_FILE);
+    let bytes = std::fs::read(&opt_path).map_err(|source| CheckpointError::Read {
+        path: opt_path.clone(),
+        source,
+    })?;
+    let expected: BTreeMap<String, Vec<usize>> =
+        optimizer_tensors(&[&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt])?
+            .into_iter()
+            .map(|(n, t)| (n, t.dims().to_vec()))
+            .collect();
+    let tensors =
+        load_expected_tensors(dir, &opt_path, &bytes, &expected, meta.net.encoder, device)?;
+    for ((group, opt), t) in ["actor", "critic", "alpha"]
+        .iter()
+        .zip([
+            &mut learner.actor_opt,
+            &mut learner.critic_opt,
+            &mut learner.alpha_opt,
+        ])
+        .zip(state.adam_steps)
+    {
+        let moments = (0..opt.len())
+            .map(|i| {
+                let get = |s: &str| tensors[&format!("{group}.{i:03}.{s}")].to_vec1::<f32>();
+                Ok((get("m")?, get("v")?))
+            })
+            .collect::<Result<Vec<_>, candle_core::Error>>()?;
+        opt.set_moments(t, moments)
+            .map_err(|reason| TrainError::State {
+                path: opt_path.clone(),
+                reason,
+            })?;
+    }
+    Ok((learner, state, meta))
 }
 
 /// Drops metric lines logged after `steps_done` (work lost since the last checkpoint).
@@ -707,5 +714,6 @@ pub fn ant_options(
         save_replay: true,
         log_every: 1_000,
         progress_bar: true,
+        update: UpdatePath::Fused,
     }
 }

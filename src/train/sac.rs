@@ -9,6 +9,7 @@ use rand_distr::StandardNormal;
 use serde::Serialize;
 
 use super::adam::Adam;
+use super::fused::FusedSac;
 use super::replay::Batch;
 use crate::policy::layers::Grad;
 use crate::policy::{PolicyInput, SacConfig, SacModel, squashed_sample};
@@ -32,7 +33,18 @@ pub struct UpdateStats {
     pub alpha_loss: f64,
 }
 
-/// The model plus its three optimisers.
+/// How an update is computed: the same algorithm either way.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum UpdatePath {
+    /// Hand-written forward and backward passes over preallocated buffers ([`FusedSac`]).
+    #[default]
+    Fused,
+    /// candle's autograd, op by op: the reference the fused path is tested against.
+    Reference,
+}
+
+/// The model plus its three optimisers. With the fused path on, the live weights and moments
+/// are the fused learner's; [`Self::sync_model`] copies them into `model` and the optimisers.
 pub struct SacLearner {
     pub model: SacModel,
     pub config: SacConfig,
@@ -41,6 +53,7 @@ pub struct SacLearner {
     pub critic_opt: Adam,
     pub alpha_opt: Adam,
     device: Device,
+    fused: Option<FusedSac>,
 }
 
 impl SacLearner {
@@ -55,7 +68,71 @@ impl SacLearner {
             config,
             target_entropy,
             device,
+            fused: None,
         }
+    }
+
+    /// Switches to `path`, carrying the current weights and optimiser state across.
+    pub fn set_update_path(&mut self, path: UpdatePath) -> Result<()> {
+        self.sync_model()?;
+        self.fused = match path {
+            UpdatePath::Reference => None,
+            UpdatePath::Fused => Some(FusedSac::new(
+                &self.model,
+                [&self.actor_opt, &self.critic_opt, &self.alpha_opt],
+                &self.config,
+                self.target_entropy,
+            )?),
+        };
+        Ok(())
+    }
+
+    /// Makes `model` and the optimisers current (the fused path keeps its own copy while it
+    /// trains); a no-op on the reference path.
+    pub fn sync_model(&mut self) -> Result<()> {
+        if let Some(fused) = &self.fused {
+            fused.write_back(
+                &self.model,
+                [
+                    &mut self.actor_opt,
+                    &mut self.critic_opt,
+                    &mut self.alpha_opt,
+                ],
+            )?;
+        }
+        Ok(())
+    }
+
+    /// An exploration action (squashed-Gaussian sample) for one observation, from the live
+    /// weights; `noise` is act_dim standard normals.
+    pub fn explore(
+        &mut self,
+        obs: &[f32],
+        window: Option<&[f32]>,
+        noise: &[f32],
+    ) -> Result<Vec<f64>> {
+        if let Some(fused) = &mut self.fused {
+            return Ok(fused.act(obs, window, noise));
+        }
+        let net = &self.model.net;
+        let decision = self.model.actor.decide(
+            net,
+            &self.device,
+            obs,
+            window,
+            crate::policy::ActionMode::Sampled,
+            Some(noise),
+        )?;
+        Ok(decision
+            .into_iter()
+            .next()
+            .map(|d| d.action)
+            .unwrap_or_default())
+    }
+
+    /// The fused learner's gradients of the last update, by parameter name (tests).
+    pub fn fused_gradients(&self) -> Option<NamedGradients> {
+        self.fused.as_ref().map(FusedSac::gradients)
     }
 
     fn inputs(&self, batch: &Batch) -> Result<(PolicyInput, PolicyInput)> {
@@ -86,6 +163,18 @@ impl SacLearner {
 
     /// One gradient step on `batch`; `rng` draws the reparameterisation noise.
     pub fn update(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
+        match &mut self.fused {
+            Some(fused) => fused.update(batch, rng),
+            None => Ok(self.reference_update(batch, rng)?.0),
+        }
+    }
+
+    /// The update with candle's autograd; also returns every parameter's gradient by name.
+    pub fn reference_update(
+        &mut self,
+        batch: &Batch,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(UpdateStats, NamedGradients)> {
         let b = batch.size;
         let (input, next_input) = self.inputs(batch)?;
         let model = &self.model;
@@ -102,6 +191,7 @@ impl SacLearner {
             * -1.0)?;
         let alpha_grads = alpha_loss.backward()?;
         self.alpha_opt.step(&alpha_grads)?;
+        let mut gradients = named_gradients(&self.model.alpha_params, &alpha_grads)?;
 
         // --- critic ----------------------------------------------------------------------------
         let target_q = {
@@ -132,6 +222,7 @@ impl SacLearner {
         let critic_loss = ((&qf1_loss + &qf2_loss)? * 0.5)?;
         let critic_grads = critic_loss.backward()?;
         self.critic_opt.step(&critic_grads)?;
+        gradients.extend(named_gradients(&self.model.critic_params, &critic_grads)?);
 
         // --- actor -------------------------------------------------------------------------------
         // The critic (just updated) is frozen: gradients reach the action, not its weights.
@@ -147,12 +238,13 @@ impl SacLearner {
         let actor_loss = ((log_prob_pi * alpha)? - min_q_pi)?.mean_all()?;
         let actor_grads = actor_loss.backward()?;
         self.actor_opt.step(&actor_grads)?;
+        gradients.extend(named_gradients(&self.model.actor_params, &actor_grads)?);
 
         // --- target critic -------------------------------------------------------------------
         polyak_update(self.model.target_pairs(), self.config.tau)?;
 
         let scalar = |t: &Tensor| -> Result<f64> { Ok(t.to_scalar::<f32>()? as f64) };
-        Ok(UpdateStats {
+        let stats = UpdateStats {
             qf1_loss: scalar(&qf1_loss)?,
             qf2_loss: scalar(&qf2_loss)?,
             qf1_values: scalar(&q1.mean_all()?)?,
@@ -160,8 +252,26 @@ impl SacLearner {
             actor_loss: scalar(&actor_loss)?,
             alpha,
             alpha_loss: scalar(&alpha_loss)?,
-        })
+        };
+        Ok((stats, gradients))
     }
+}
+
+/// Gradients by parameter name, flattened.
+pub type NamedGradients = Vec<(String, Vec<f32>)>;
+
+/// Each parameter of `store` that has a gradient in `grads`.
+fn named_gradients(
+    store: &crate::policy::layers::ParamStore,
+    grads: &candle_core::backprop::GradStore,
+) -> Result<NamedGradients> {
+    let mut out = Vec::new();
+    for (name, var) in store.iter() {
+        if let Some(g) = grads.get(var) {
+            out.push((name.to_string(), g.flatten_all()?.to_vec1::<f32>()?));
+        }
+    }
+    Ok(out)
 }
 
 /// target ← τ·source + (1 − τ)·target, for each pair.

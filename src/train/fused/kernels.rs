@@ -1,0 +1,303 @@
+//! The arithmetic of the fused update on host slices: dense layers forward and backward, the
+//! LSTM and window-MLP encoders, Adam. Row-major everywhere; weights are (in, out) as in the
+//! checkpoints, so a forward pass is `x · W + b` with no transpose.
+
+use crate::policy::gemm::matmul;
+use crate::policy::lstm_kernel;
+
+/// Defines `pub fn $name` whose body is compiled twice, plain and with AVX2 + FMA, and picks the
+/// second at run time where the CPU has them (the crate itself targets baseline x86-64). Only
+/// for loops the compiler can vectorise; the arithmetic (and so every result) is the same.
+macro_rules! with_avx2 {
+    ($(#[$meta:meta])* pub fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
+        $(#[$meta])*
+        pub fn $name($($arg: $ty),*) {
+            #[inline(always)]
+            fn imp($($arg: $ty),*) $body
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn avx2($($arg: $ty),*) {
+                    imp($($arg),*)
+                }
+                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU has AVX2 and FMA (just checked).
+                    return unsafe { avx2($($arg),*) };
+                }
+            }
+            imp($($arg),*)
+        }
+    };
+}
+
+/// `c (m×n) [+]= a (m×k) · b (k×n)`, all row-major and contiguous.
+pub fn mm(c: &mut [f32], acc: bool, (m, n, k): (usize, usize, usize), a: &[f32], b: &[f32]) {
+    if m * n * k > 0 {
+        matmul(c, acc, (m, n, k), a, (k, 1), b, (n, 1));
+    }
+}
+
+/// `c (m×n) [+]= aᵀ · b` with `a` stored (k×m) and `b` (k×n), row-major.
+pub fn mm_tn(c: &mut [f32], acc: bool, (m, n, k): (usize, usize, usize), a: &[f32], b: &[f32]) {
+    if m * n * k > 0 {
+        matmul(c, acc, (m, n, k), a, (1, m), b, (n, 1));
+    }
+}
+
+/// `c (m×n) [+]= a · bᵀ` with `a` stored (m×k) and `b` (n×k), row-major.
+pub fn mm_nt(c: &mut [f32], acc: bool, (m, n, k): (usize, usize, usize), a: &[f32], b: &[f32]) {
+    if m * n * k > 0 {
+        matmul(c, acc, (m, n, k), a, (k, 1), b, (1, k));
+    }
+}
+
+/// One linear layer's parameters, borrowed.
+#[derive(Clone, Copy)]
+pub struct DenseRef<'a> {
+    pub w: &'a [f32],
+    pub b: &'a [f32],
+    pub n_in: usize,
+    pub n_out: usize,
+}
+
+/// `y = x · W + b`, then ReLU if asked; `x` is rows × n_in.
+pub fn dense_forward(d: DenseRef, x: &[f32], rows: usize, y: &mut [f32], relu: bool) {
+    let y = &mut y[..rows * d.n_out];
+    for row in y.chunks_exact_mut(d.n_out) {
+        row.copy_from_slice(d.b);
+    }
+    mm(y, true, (rows, d.n_out, d.n_in), &x[..rows * d.n_in], d.w);
+    if relu {
+        relu_in_place(y);
+    }
+}
+
+with_avx2! {
+    /// `y = max(y, 0)` in place.
+    pub fn relu_in_place(y: &mut [f32]) {
+        for v in y.iter_mut() {
+            *v = v.max(0.0);
+        }
+    }
+}
+
+/// Backward of one linear layer given `dy` (rows × n_out, already through the activation):
+/// weight and bias gradients (overwritten) when `grads` is given, and `dx = dy · Wᵀ` when asked.
+pub fn dense_backward(
+    d: DenseRef,
+    x: &[f32],
+    rows: usize,
+    dy: &[f32],
+    grads: Option<(&mut [f32], &mut [f32])>,
+    dx: Option<&mut [f32]>,
+) {
+    let dy = &dy[..rows * d.n_out];
+    if let Some((gw, gb)) = grads {
+        mm_tn(gw, false, (d.n_in, d.n_out, rows), &x[..rows * d.n_in], dy);
+        column_sums(dy, d.n_out, gb);
+    }
+    if let Some(dx) = dx {
+        mm_nt(
+            &mut dx[..rows * d.n_in],
+            false,
+            (rows, d.n_in, d.n_out),
+            dy,
+            d.w,
+        );
+    }
+}
+
+with_avx2! {
+    /// `out[j] = Σ_rows m[row][j]`.
+    pub fn column_sums(m: &[f32], cols: usize, out: &mut [f32]) {
+        out.fill(0.0);
+        for row in m.chunks_exact(cols) {
+            for (o, v) in out.iter_mut().zip(row) {
+                *o += v;
+            }
+        }
+    }
+}
+
+with_avx2! {
+    /// Zeroes `d` where the ReLU output `y` is not positive (candle's mask is `x ≥ 0`; the two
+    /// differ only where a pre-activation is exactly 0). A select, not a branch: it vectorises.
+    pub fn relu_backward(y: &[f32], d: &mut [f32]) {
+        for (g, v) in d.iter_mut().zip(y) {
+            *g = if *v > 0.0 { *g } else { 0.0 };
+        }
+    }
+}
+
+/// The per-step state an LSTM forward leaves for its backward, time-major.
+#[derive(Default)]
+pub struct LstmTape {
+    /// Gate pre-activations, then (after the step) activations i, f, g, o: (T, R, 4H).
+    pub gates: Vec<f32>,
+    /// c_0..c_T: (T + 1, R, H), c_0 = 0.
+    pub cells: Vec<f32>,
+    /// h_0..h_T: (T + 1, R, H), h_0 = 0; h_T is z.
+    pub hidden: Vec<f32>,
+    pub rows: usize,
+}
+
+/// An LSTM's parameters, borrowed (PyTorch's gate order, weights (in, 4H) and (H, 4H)).
+#[derive(Clone, Copy)]
+pub struct LstmRef<'a> {
+    pub w_ih: &'a [f32],
+    pub w_hh: &'a [f32],
+    pub b_ih: &'a [f32],
+    pub b_hh: &'a [f32],
+    pub input: usize,
+    pub hidden: usize,
+}
+
+/// Runs the LSTM from zero state over windows given in parts (each part rows_i × T × input,
+/// batch-major as the replay stores them); the parts' rows are stacked in order. The input
+/// projection is one GEMM per step and part, written straight into the time-major gates.
+pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmTape) {
+    let (h, e) = (l.hidden, l.input);
+    let g4 = 4 * h;
+    let rows: usize = parts.iter().map(|p| p.len() / (t_len * e)).sum();
+    tape.rows = rows;
+    tape.gates.resize(t_len * rows * g4, 0.0);
+    tape.cells.resize((t_len + 1) * rows * h, 0.0);
+    tape.hidden.resize((t_len + 1) * rows * h, 0.0);
+    tape.cells[..rows * h].fill(0.0);
+    tape.hidden[..rows * h].fill(0.0);
+    let bias: Vec<f32> = l.b_ih.iter().zip(l.b_hh).map(|(a, b)| a + b).collect();
+    for t in 0..t_len {
+        let gates = &mut tape.gates[t * rows * g4..(t + 1) * rows * g4];
+        for row in gates.chunks_exact_mut(g4) {
+            row.copy_from_slice(&bias);
+        }
+        let mut offset = 0;
+        for part in parts {
+            let n = part.len() / (t_len * e);
+            // Row b of step t is part[b·T·E + t·E ..]: a strided view, no copy.
+            matmul(
+                &mut gates[offset * g4..(offset + n) * g4],
+                true,
+                (n, g4, e),
+                &part[t * e..],
+                (t_len * e, 1),
+                l.w_ih,
+                (g4, 1),
+            );
+            offset += n;
+        }
+        if t > 0 {
+            mm(
+                gates,
+                true,
+                (rows, g4, h),
+                &tape.hidden[t * rows * h..(t + 1) * rows * h],
+                l.w_hh,
+            );
+        }
+        let (c_prev, c_next) = tape.cells[t * rows * h..(t + 2) * rows * h].split_at_mut(rows * h);
+        let h_next = &mut tape.hidden[(t + 1) * rows * h..(t + 2) * rows * h];
+        lstm_kernel::step_forward(gates, c_prev, c_next, h_next, h);
+    }
+}
+
+/// z = h_T of the last forward, rows × H.
+pub fn lstm_output(tape: &LstmTape, t_len: usize, h: usize) -> &[f32] {
+    &tape.hidden[t_len * tape.rows * h..(t_len + 1) * tape.rows * h]
+}
+
+/// Gradients of an LSTM's four parameters (overwritten) from `d_z` for the first
+/// `rows` rows of the tape, whose inputs were `window` (rows × T × input).
+#[allow(clippy::too_many_arguments)]
+pub fn lstm_backward(
+    l: LstmRef,
+    tape: &LstmTape,
+    window: &[f32],
+    rows: usize,
+    t_len: usize,
+    d_z: &[f32],
+    scratch: &mut LstmScratch,
+    grads: [&mut [f32]; 4],
+) {
+    let (h, e) = (l.hidden, l.input);
+    let g4 = 4 * h;
+    let stride = tape.rows;
+    let [g_w_ih, g_w_hh, g_b_ih, g_b_hh] = grads;
+    scratch.d_h.clear();
+    scratch.d_h.extend_from_slice(&d_z[..rows * h]);
+    scratch.d_c.clear();
+    scratch.d_c.resize(rows * h, 0.0);
+    scratch.d_gates.resize(rows * g4, 0.0);
+    g_w_ih.fill(0.0);
+    g_w_hh.fill(0.0);
+    g_b_ih.fill(0.0);
+    for t in (0..t_len).rev() {
+        let act = &tape.gates[t * stride * g4..t * stride * g4 + rows * g4];
+        let c_prev = &tape.cells[t * stride * h..t * stride * h + rows * h];
+        let c = &tape.cells[(t + 1) * stride * h..(t + 1) * stride * h + rows * h];
+        let d_g = &mut scratch.d_gates[..rows * g4];
+        lstm_kernel::step_backward(act, c_prev, c, &scratch.d_h, &mut scratch.d_c, d_g, h);
+        // dW_ih += x_tᵀ · dG (input rows strided by T·E), db += Σ_rows dG.
+        matmul(
+            g_w_ih,
+            true,
+            (e, g4, rows),
+            &window[t * e..],
+            (1, t_len * e),
+            d_g,
+            (g4, 1),
+        );
+        for row in d_g.chunks_exact(g4) {
+            for (o, v) in g_b_ih.iter_mut().zip(row) {
+                *o += v;
+            }
+        }
+        if t > 0 {
+            let h_prev = &tape.hidden[t * stride * h..t * stride * h + rows * h];
+            mm_tn(g_w_hh, true, (h, g4, rows), h_prev, d_g);
+            mm_nt(&mut scratch.d_h, false, (rows, h, g4), d_g, l.w_hh);
+        }
+    }
+    // b_ih and b_hh enter as one sum: the same gradient.
+    g_b_hh.copy_from_slice(g_b_ih);
+}
+
+/// Buffers the LSTM backward reuses between calls.
+#[derive(Default)]
+pub struct LstmScratch {
+    d_h: Vec<f32>,
+    d_c: Vec<f32>,
+    d_gates: Vec<f32>,
+}
+
+with_avx2! {
+    /// PyTorch's Adam (no weight decay) over one tensor, exactly as [`crate::train::adam::Adam`].
+    pub fn adam_step(
+        theta: &mut [f32],
+        g: &[f32],
+        m: &mut [f32],
+        v: &mut [f32],
+        step_size: f32,
+        bc2_sqrt: f32,
+        betas: (f32, f32, f32),
+    ) {
+        let (b1, b2, eps) = betas;
+        let n = theta.len();
+        let (g, m, v) = (&g[..n], &mut m[..n], &mut v[..n]);
+        for i in 0..n {
+            m[i] = b1 * m[i] + (1.0 - b1) * g[i];
+            v[i] = b2 * v[i] + (1.0 - b2) * g[i] * g[i];
+            let denom = v[i].sqrt() / bc2_sqrt + eps;
+            theta[i] -= step_size * m[i] / denom;
+        }
+    }
+}
+
+with_avx2! {
+    /// target ← τ·source + (1 − τ)·target, as [`crate::train::sac::polyak_update`].
+    pub fn polyak(target: &mut [f32], source: &[f32], tau: f32) {
+        for (d, s) in target.iter_mut().zip(source) {
+            *d = tau * s + (1.0 - tau) * *d;
+        }
+    }
+}

@@ -1,0 +1,1051 @@
+//! The SAC update of [`super::sac::SacLearner`] without autograd: every forward and backward
+//! pass written out over preallocated host buffers, on the same `gemm` kernels candle uses.
+//!
+//! Why: at batch 256 the reference update spends half its time outside GEMM, in candle's
+//! op-by-op allocations and elementwise passes. The algorithm, the hyperparameters and SB3's
+//! update order are unchanged (α → critic → actor against the updated critic → Polyak), and so
+//! are the checkpoint and optimiser formats: [`FusedSac::write_back`] puts weights and moments
+//! into the reference learner, which saves them. `tests/fused_update.rs` holds this path to the
+//! reference (losses, gradients, updated weights) for every encoder.
+//!
+//! Deviations in arithmetic, none in the algorithm: the actor's passes over the current and next
+//! observations run as one 2B-row batch (the same weights see both); ReLU masks read the output
+//! (`y > 0`) where candle reads the input (`x ≥ 0`), which differ only at exactly 0.
+
+mod kernels;
+
+use candle_core::{Result, Tensor, bail};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+use super::adam::{Adam, BETA1, BETA2, EPS};
+use super::replay::Batch;
+use super::sac::UpdateStats;
+use crate::policy::layers::ParamStore;
+use crate::policy::{
+    EncoderKind, LOG_STD_MAX, LOG_STD_MIN, NetConfig, SacConfig, SacModel, TANH_EPS,
+};
+use kernels::{
+    DenseRef, LstmRef, LstmScratch, LstmTape, adam_step, dense_backward, dense_forward,
+    lstm_backward, lstm_forward, lstm_output, relu_backward,
+};
+
+/// One owner's parameters (actor, critic, target, α) as flat vectors in the model's order, with
+/// their gradients and Adam moments.
+struct Group {
+    names: Vec<String>,
+    values: Vec<Vec<f32>>,
+    grads: Vec<Vec<f32>>,
+    m: Vec<Vec<f32>>,
+    v: Vec<Vec<f32>>,
+    shapes: Vec<Vec<usize>>,
+    /// Adam steps taken.
+    t: u64,
+}
+
+impl Group {
+    fn new(store: &ParamStore, opt: Option<&Adam>) -> Result<Self> {
+        let mut g = Group {
+            names: Vec::new(),
+            values: Vec::new(),
+            grads: Vec::new(),
+            m: Vec::new(),
+            v: Vec::new(),
+            shapes: Vec::new(),
+            t: opt.map_or(0, |o| o.t),
+        };
+        for (name, var) in store.iter() {
+            let value = var.flatten_all()?.to_vec1::<f32>()?;
+            g.grads.push(vec![0.0; value.len()]);
+            g.m.push(vec![0.0; value.len()]);
+            g.v.push(vec![0.0; value.len()]);
+            g.names.push(name.to_string());
+            g.shapes.push(var.dims().to_vec());
+            g.values.push(value);
+        }
+        if let Some(opt) = opt {
+            if opt.len() != g.values.len() {
+                bail!("{} Adam slots for {} parameters", opt.len(), g.values.len());
+            }
+            for (i, (m, v)) in opt.moments().enumerate() {
+                g.m[i].copy_from_slice(m);
+                g.v[i].copy_from_slice(v);
+            }
+        }
+        Ok(g)
+    }
+
+    fn index(&self, name: &str) -> Result<usize> {
+        match self.names.iter().position(|n| n == name) {
+            Some(i) => Ok(i),
+            None => bail!("fused update: no parameter named {name}"),
+        }
+    }
+
+    /// One Adam step on every parameter (the reference steps every parameter too: each one
+    /// gets a gradient from its loss).
+    fn adam(&mut self, lr: f64) {
+        self.t += 1;
+        let bc1 = 1.0 - BETA1.powi(self.t as i32);
+        let bc2 = 1.0 - BETA2.powi(self.t as i32);
+        let step_size = (lr / bc1) as f32;
+        let bc2_sqrt = bc2.sqrt() as f32;
+        let betas = (BETA1 as f32, BETA2 as f32, EPS as f32);
+        for i in 0..self.values.len() {
+            adam_step(
+                &mut self.values[i],
+                &self.grads[i],
+                &mut self.m[i],
+                &mut self.v[i],
+                step_size,
+                bc2_sqrt,
+                betas,
+            );
+        }
+    }
+
+    /// Writes values into the store's vars (and moments into `opt`).
+    fn write_back(&self, store: &ParamStore, opt: Option<&mut Adam>) -> Result<()> {
+        for ((_, var), (value, shape)) in store.iter().zip(self.values.iter().zip(&self.shapes)) {
+            var.set(&Tensor::from_slice(value, shape.as_slice(), var.device())?)?;
+        }
+        if let Some(opt) = opt {
+            let moments = self.m.iter().cloned().zip(self.v.iter().cloned()).collect();
+            opt.set_moments(self.t, moments)
+                .map_err(candle_core::Error::Msg)?;
+        }
+        Ok(())
+    }
+}
+
+/// Mutable gradients of a layer's weight and bias at once.
+fn pair_mut(v: &mut [Vec<f32>], i: usize, j: usize) -> (&mut [f32], &mut [f32]) {
+    assert_ne!(i, j);
+    if i < j {
+        let (a, b) = v.split_at_mut(j);
+        (&mut a[i], &mut b[0])
+    } else {
+        let (a, b) = v.split_at_mut(i);
+        (&mut b[0], &mut a[j])
+    }
+}
+
+/// A linear layer: indices of its weight (in, out) and bias (1, out) in a group.
+#[derive(Debug, Clone, Copy)]
+struct Dense {
+    w: usize,
+    b: usize,
+    n_in: usize,
+    n_out: usize,
+}
+
+impl Dense {
+    fn find(g: &Group, prefix: &str) -> Result<Self> {
+        let w = g.index(&format!("{prefix}.weight"))?;
+        let b = g.index(&format!("{prefix}.bias"))?;
+        match g.shapes[w].as_slice() {
+            &[n_in, n_out] => Ok(Dense { w, b, n_in, n_out }),
+            s => bail!("fused update: {prefix}.weight has shape {s:?}"),
+        }
+    }
+
+    fn get<'a>(&self, values: &'a [Vec<f32>]) -> DenseRef<'a> {
+        DenseRef {
+            w: &values[self.w],
+            b: &values[self.b],
+            n_in: self.n_in,
+            n_out: self.n_out,
+        }
+    }
+}
+
+/// Linear layers with ReLU between them (and after the last one if `relu_out`).
+#[derive(Debug, Clone)]
+struct Mlp {
+    layers: Vec<Dense>,
+    relu_out: bool,
+}
+
+impl Mlp {
+    fn find(g: &Group, prefix: &str, relu_out: bool) -> Result<Self> {
+        let mut layers = Vec::new();
+        while g
+            .names
+            .iter()
+            .any(|n| *n == format!("{prefix}.{}.weight", layers.len()))
+        {
+            layers.push(Dense::find(g, &format!("{prefix}.{}", layers.len()))?);
+        }
+        if layers.is_empty() {
+            bail!("fused update: no layers under {prefix}");
+        }
+        Ok(Mlp { layers, relu_out })
+    }
+
+    fn n_out(&self) -> usize {
+        self.layers.last().map_or(0, |l| l.n_out)
+    }
+
+    fn widest(&self) -> usize {
+        self.layers
+            .iter()
+            .map(|l| l.n_in.max(l.n_out))
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// Forward over `rows` rows of `x`; every layer's output stays in `tape`.
+    fn forward(&self, values: &[Vec<f32>], x: &[f32], rows: usize, tape: &mut MlpTape) {
+        tape.outs.resize_with(self.layers.len(), Vec::new);
+        for (i, layer) in self.layers.iter().enumerate() {
+            let (before, after) = tape.outs.split_at_mut(i);
+            let input = if i == 0 { x } else { &before[i - 1] };
+            let out = &mut after[0];
+            out.resize(rows * layer.n_out, 0.0);
+            let relu = i + 1 < self.layers.len() || self.relu_out;
+            dense_forward(layer.get(values), input, rows, out, relu);
+        }
+    }
+
+    /// Backward from `d_out` (rows × n_out, before the output ReLU if any): weight gradients into
+    /// `grads` when given, and `d_x` (rows × n_in of the first layer) when asked.
+    #[allow(clippy::too_many_arguments)]
+    fn backward(
+        &self,
+        values: &[Vec<f32>],
+        mut grads: Option<&mut [Vec<f32>]>,
+        x: &[f32],
+        rows: usize,
+        tape: &MlpTape,
+        d_out: &[f32],
+        d_x: Option<&mut [f32]>,
+        scratch: &mut [Vec<f32>; 2],
+    ) {
+        let n = self.layers.len();
+        let width = self.widest();
+        for s in scratch.iter_mut() {
+            s.resize(rows * width, 0.0);
+        }
+        let [d, d_prev] = scratch;
+        let last = self.n_out();
+        d[..rows * last].copy_from_slice(&d_out[..rows * last]);
+        if self.relu_out {
+            relu_backward(&tape.outs[n - 1], &mut d[..rows * last]);
+        }
+        let mut d_x = d_x;
+        for i in (0..n).rev() {
+            let layer = self.layers[i];
+            let input = if i == 0 { x } else { &tape.outs[i - 1] };
+            let layer_grads = grads.as_deref_mut().map(|g| pair_mut(g, layer.w, layer.b));
+            if i > 0 {
+                dense_backward(
+                    layer.get(values),
+                    input,
+                    rows,
+                    d,
+                    layer_grads,
+                    Some(&mut d_prev[..]),
+                );
+                relu_backward(&tape.outs[i - 1], &mut d_prev[..rows * layer.n_in]);
+                std::mem::swap(d, d_prev);
+            } else {
+                dense_backward(layer.get(values), input, rows, d, layer_grads, d_x.take());
+            }
+        }
+    }
+}
+
+#[derive(Default)]
+struct MlpTape {
+    outs: Vec<Vec<f32>>,
+}
+
+impl MlpTape {
+    fn output(&self) -> &[f32] {
+        self.outs.last().map_or(&[], Vec::as_slice)
+    }
+}
+
+/// A context encoder's parameters.
+#[derive(Debug, Clone)]
+enum Encoder {
+    None,
+    Lstm {
+        w_ih: usize,
+        w_hh: usize,
+        b_ih: usize,
+        b_hh: usize,
+        input: usize,
+        hidden: usize,
+    },
+    /// MLP over the flattened window, then tanh.
+    Window(Mlp),
+}
+
+impl Encoder {
+    fn find(g: &Group, prefix: &str, kind: EncoderKind) -> Result<Self> {
+        Ok(match kind {
+            EncoderKind::None => Encoder::None,
+            EncoderKind::Lstm => {
+                let p = |s: &str| g.index(&format!("{prefix}.lstm.{s}"));
+                let w_ih = p("weight_ih")?;
+                let w_hh = p("weight_hh")?;
+                let (input, g4) = match g.shapes[w_ih].as_slice() {
+                    &[i, g4] => (i, g4),
+                    s => bail!("fused update: {prefix}.lstm.weight_ih has shape {s:?}"),
+                };
+                Encoder::Lstm {
+                    w_ih,
+                    w_hh,
+                    b_ih: p("bias_ih")?,
+                    b_hh: p("bias_hh")?,
+                    input,
+                    hidden: g4 / 4,
+                }
+            }
+            EncoderKind::MlpWindow => {
+                Encoder::Window(Mlp::find(g, &format!("{prefix}.mlp"), false)?)
+            }
+        })
+    }
+
+    fn lstm<'a>(&self, values: &'a [Vec<f32>]) -> Option<LstmRef<'a>> {
+        match *self {
+            Encoder::Lstm {
+                w_ih,
+                w_hh,
+                b_ih,
+                b_hh,
+                input,
+                hidden,
+            } => Some(LstmRef {
+                w_ih: &values[w_ih],
+                w_hh: &values[w_hh],
+                b_ih: &values[b_ih],
+                b_hh: &values[b_hh],
+                input,
+                hidden,
+            }),
+            _ => None,
+        }
+    }
+
+    /// z for windows given in parts (stacked rows); nothing for `None`.
+    fn forward(&self, values: &[Vec<f32>], parts: &[&[f32]], t_len: usize, tape: &mut EncoderTape) {
+        match self {
+            Encoder::None => {}
+            Encoder::Lstm { .. } => {
+                if let Some(l) = self.lstm(values) {
+                    lstm_forward(l, parts, t_len, &mut tape.lstm);
+                }
+            }
+            Encoder::Window(mlp) => {
+                let width = mlp.layers[0].n_in;
+                let rows: usize = parts.iter().map(|p| p.len() / width).sum();
+                let x: &[f32] = if parts.len() == 1 {
+                    parts[0]
+                } else {
+                    tape.input.clear();
+                    for p in parts {
+                        tape.input.extend_from_slice(p);
+                    }
+                    &tape.input
+                };
+                mlp.forward(values, x, rows, &mut tape.mlp);
+                tape.z.clear();
+                tape.z.extend(tape.mlp.output().iter().map(|v| v.tanh()));
+            }
+        }
+    }
+
+    fn z<'a>(&self, tape: &'a EncoderTape, t_len: usize) -> &'a [f32] {
+        match self {
+            Encoder::None => &[],
+            Encoder::Lstm { hidden, .. } => lstm_output(&tape.lstm, t_len, *hidden),
+            Encoder::Window(_) => &tape.z,
+        }
+    }
+
+    /// Gradients of the encoder's parameters from d z of the first `rows` rows, whose windows
+    /// are `window` (rows × T × entry).
+    #[allow(clippy::too_many_arguments)]
+    fn backward(
+        &self,
+        values: &[Vec<f32>],
+        grads: &mut [Vec<f32>],
+        window: &[f32],
+        rows: usize,
+        t_len: usize,
+        d_z: &[f32],
+        tape: &mut EncoderTape,
+        scratch: &mut [Vec<f32>; 2],
+    ) {
+        match self {
+            Encoder::None => {}
+            &Encoder::Lstm {
+                w_ih,
+                w_hh,
+                b_ih,
+                b_hh,
+                ..
+            } => {
+                let Some(l) = self.lstm(values) else { return };
+                let mut taken: Vec<Vec<f32>> = [w_ih, w_hh, b_ih, b_hh]
+                    .iter()
+                    .map(|&i| std::mem::take(&mut grads[i]))
+                    .collect();
+                let [a, b, c, d] = taken.as_mut_slice() else {
+                    return;
+                };
+                lstm_backward(
+                    l,
+                    &tape.lstm,
+                    window,
+                    rows,
+                    t_len,
+                    d_z,
+                    &mut tape.lstm_scratch,
+                    [a, b, c, d],
+                );
+                for (&i, g) in [w_ih, w_hh, b_ih, b_hh].iter().zip(taken) {
+                    grads[i] = g;
+                }
+            }
+            Encoder::Window(mlp) => {
+                // z = tanh(y): dy = dz · (1 − z²).
+                let z_dim = mlp.n_out();
+                tape.d_pre.clear();
+                tape.d_pre.extend(
+                    d_z[..rows * z_dim]
+                        .iter()
+                        .zip(&tape.z)
+                        .map(|(d, z)| d * (1.0 - z * z)),
+                );
+                mlp.backward(
+                    values,
+                    Some(grads),
+                    window,
+                    rows,
+                    &tape.mlp,
+                    &tape.d_pre,
+                    None,
+                    scratch,
+                );
+            }
+        }
+    }
+}
+
+#[derive(Default)]
+struct EncoderTape {
+    lstm: LstmTape,
+    lstm_scratch: LstmScratch,
+    mlp: MlpTape,
+    /// Stacked window parts (window-MLP over several parts).
+    input: Vec<f32>,
+    z: Vec<f32>,
+    d_pre: Vec<f32>,
+}
+
+/// The actor: encoder, trunk, mean and log-std heads.
+struct ActorNet {
+    encoder: Encoder,
+    /// Widths of z (0 without an encoder) and of the observation in the features [z, obs].
+    z_dim: usize,
+    obs_dim: usize,
+    trunk: Mlp,
+    mean: Dense,
+    log_std: Dense,
+}
+
+/// Twin Q-networks with an optional own encoder.
+struct CriticNet {
+    encoder: Option<Encoder>,
+    q: [Mlp; 2],
+}
+
+impl CriticNet {
+    fn find(g: &Group, prefix: &str, kind: EncoderKind, own_encoder: bool) -> Result<Self> {
+        Ok(CriticNet {
+            encoder: if own_encoder {
+                Some(Encoder::find(g, &format!("{prefix}.encoder"), kind)?)
+            } else {
+                None
+            },
+            q: [
+                Mlp::find(g, &format!("{prefix}.q0"), false)?,
+                Mlp::find(g, &format!("{prefix}.q1"), false)?,
+            ],
+        })
+    }
+}
+
+/// Every buffer one update needs, allocated on first use and reused.
+#[derive(Default)]
+struct Workspace {
+    actor_enc: EncoderTape,
+    critic_enc: EncoderTape,
+    /// Actor features [z, obs] over the current then the next observations (2B rows).
+    features: Vec<f32>,
+    trunk: MlpTape,
+    mean: Vec<f32>,
+    log_std_raw: Vec<f32>,
+    noise: Vec<f32>,
+    action: Vec<f32>,
+    log_prob: Vec<f32>,
+    /// Critic input [features, action] (B rows).
+    q_input: Vec<f32>,
+    q_tapes: [MlpTape; 2],
+    q_values: [Vec<f32>; 2],
+    target: Vec<f32>,
+    d_q: Vec<f32>,
+    d_q_input: Vec<f32>,
+    d_action: Vec<f32>,
+    d_heads: [Vec<f32>; 2],
+    d_h: Vec<f32>,
+    d_features: Vec<f32>,
+    d_z: Vec<f32>,
+    scratch: [Vec<f32>; 2],
+    trunk_scratch: Vec<f32>,
+}
+
+/// The fused learner: live weights and optimiser state while training runs.
+pub struct FusedSac {
+    net: NetConfig,
+    config: SacConfig,
+    target_entropy: f64,
+    actor_p: Group,
+    critic_p: Group,
+    target_p: Group,
+    alpha_p: Group,
+    actor: ActorNet,
+    critic: CriticNet,
+    target: CriticNet,
+    /// (target index, source is the actor's, source index) for the Polyak update.
+    polyak: Vec<(usize, bool, usize)>,
+    ws: Workspace,
+}
+
+impl FusedSac {
+    /// Copies the reference learner's weights and Adam state.
+    pub fn new(
+        model: &SacModel,
+        opts: [&Adam; 3],
+        config: &SacConfig,
+        target_entropy: f64,
+    ) -> Result<Self> {
+        let net = model.net.clone();
+        let [actor_opt, critic_opt, alpha_opt] = opts;
+        let actor_p = Group::new(&model.actor_params, Some(actor_opt))?;
+        let critic_p = Group::new(&model.critic_params, Some(critic_opt))?;
+        let target_p = Group::new(&model.target_params, None)?;
+        let alpha_p = Group::new(&model.alpha_params, Some(alpha_opt))?;
+        let own = model.critic.encoder.is_some();
+        let actor = ActorNet {
+            encoder: Encoder::find(&actor_p, "actor.encoder", net.encoder)?,
+            z_dim: if net.encoder.uses_window() {
+                net.z_dim
+            } else {
+                0
+            },
+            obs_dim: net.obs_dim,
+            trunk: Mlp::find(&actor_p, "actor.trunk", true)?,
+            mean: Dense::find(&actor_p, "actor.mean")?,
+            log_std: Dense::find(&actor_p, "actor.log_std")?,
+        };
+        let critic = CriticNet::find(&critic_p, "critic", net.encoder, own)?;
+        let target = CriticNet::find(&target_p, "critic_target", net.encoder, true)?;
+        let mut polyak = Vec::new();
+        for (i, name) in target_p.names.iter().enumerate() {
+            let rest = name.strip_prefix("critic_target.").unwrap_or(name);
+            let shared = !own && rest.starts_with("encoder.");
+            let source = if shared {
+                actor_p.index(&format!("actor.{rest}"))?
+            } else {
+                critic_p.index(&format!("critic.{rest}"))?
+            };
+            polyak.push((i, shared, source));
+        }
+        Ok(Self {
+            net,
+            config: config.clone(),
+            target_entropy,
+            actor_p,
+            critic_p,
+            target_p,
+            alpha_p,
+            actor,
+            critic,
+            target,
+            polyak,
+            ws: Workspace::default(),
+        })
+    }
+
+    /// Puts the live weights and Adam state back into the model and the reference optimisers
+    /// (before saving a checkpoint).
+    pub fn write_back(&self, model: &SacModel, opts: [&mut Adam; 3]) -> Result<()> {
+        let [actor_opt, critic_opt, alpha_opt] = opts;
+        self.actor_p
+            .write_back(&model.actor_params, Some(actor_opt))?;
+        self.critic_p
+            .write_back(&model.critic_params, Some(critic_opt))?;
+        self.target_p.write_back(&model.target_params, None)?;
+        self.alpha_p
+            .write_back(&model.alpha_params, Some(alpha_opt))?;
+        Ok(())
+    }
+
+    /// The last update's gradient of every trained parameter, by name (α, critic, actor).
+    pub fn gradients(&self) -> Vec<(String, Vec<f32>)> {
+        [&self.alpha_p, &self.critic_p, &self.actor_p]
+            .iter()
+            .flat_map(|g| g.names.iter().cloned().zip(g.grads.iter().cloned()))
+            .collect()
+    }
+
+    /// A squashed-Gaussian action for one observation (and window): what the training loop
+    /// explores with, from the live weights. `noise` is act_dim standard normals.
+    pub fn act(&mut self, obs: &[f32], window: Option<&[f32]>, noise: &[f32]) -> Vec<f64> {
+        let t_len = self.net.context_len;
+        let parts: Vec<&[f32]> = window.into_iter().collect();
+        actor_forward(
+            &self.actor,
+            &self.actor_p.values,
+            &[obs],
+            &parts,
+            t_len,
+            &mut self.ws,
+        );
+        let ws = &mut self.ws;
+        sample(
+            &ws.mean,
+            &ws.log_std_raw,
+            noise,
+            self.net.act_dim,
+            &mut ws.action,
+            &mut ws.log_prob,
+        );
+        ws.action.iter().map(|&a| f64::from(a)).collect()
+    }
+
+    /// One gradient step on `batch`; `rng` draws the reparameterisation noise exactly as the
+    /// reference does (current actions first, then next actions).
+    pub fn update(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
+        let b = batch.size;
+        let net = self.net.clone();
+        let (act, t_len) = (net.act_dim, net.context_len);
+        let windows = net.encoder.uses_window();
+        let (win, next_win): (&[f32], &[f32]) = if windows {
+            (&batch.window, &batch.next_window)
+        } else {
+            (&[], &[])
+        };
+        let ws = &mut self.ws;
+        ws.noise.clear();
+        ws.noise
+            .extend((0..2 * b * act).map(|_| rng.sample::<f32, _>(StandardNormal)));
+
+        // --- actor forward, current and next observations as one batch ------------------------
+        let win_parts: Vec<&[f32]> = if windows { vec![win, next_win] } else { vec![] };
+        actor_forward(
+            &self.actor,
+            &self.actor_p.values,
+            &[&batch.obs, &batch.next_obs],
+            &win_parts,
+            t_len,
+            ws,
+        );
+        sample(
+            &ws.mean,
+            &ws.log_std_raw,
+            &ws.noise,
+            act,
+            &mut ws.action,
+            &mut ws.log_prob,
+        );
+        // Rows 0..B: a_pi, log π(a_pi); rows B..2B: the next actions for the target.
+
+        // --- entropy coefficient -------------------------------------------------------------
+        let log_alpha = self.alpha_p.values[0][0];
+        let alpha = f64::from(log_alpha.exp());
+        let te = self.target_entropy as f32;
+        let mean_lp_te = ws.log_prob[..b].iter().map(|lp| lp + te).sum::<f32>() / b as f32;
+        let alpha_loss = -(log_alpha * mean_lp_te);
+        self.alpha_p.grads[0][0] = -mean_lp_te;
+        self.alpha_p.adam(self.config.learning_rate);
+
+        // --- critic target ---------------------------------------------------------------------
+        let target_enc = self.target.encoder.as_ref().unwrap_or(&Encoder::None);
+        target_enc.forward(
+            &self.target_p.values,
+            &[next_win],
+            t_len,
+            &mut ws.critic_enc,
+        );
+        q_input(
+            &net,
+            target_enc.z(&ws.critic_enc, t_len),
+            &batch.next_obs,
+            &ws.action[b * act..2 * b * act],
+            b,
+            &mut ws.q_input,
+        );
+        for k in 0..2 {
+            self.target.q[k].forward(&self.target_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
+        }
+        ws.target.clear();
+        let (gamma, alpha32) = (self.config.gamma as f32, alpha as f32);
+        for i in 0..b {
+            let q = ws.q_tapes[0].output()[i].min(ws.q_tapes[1].output()[i]);
+            let next_q = q - ws.log_prob[b + i] * alpha32;
+            // Bootstrap cut on termination only: a truncated episode still has a future.
+            let not_done = 1.0 - batch.terminated[i];
+            ws.target
+                .push(batch.rewards[i] + (not_done * next_q) * gamma);
+        }
+
+        // --- critic ----------------------------------------------------------------------------
+        // Features: the critic's own encoder (tracked), or the actor's z (shared, no gradient).
+        if let Some(enc) = &self.critic.encoder {
+            enc.forward(&self.critic_p.values, &[win], t_len, &mut ws.critic_enc);
+        }
+        let z_c: Vec<f32> = match &self.critic.encoder {
+            Some(enc) => enc.z(&ws.critic_enc, t_len).to_vec(),
+            None => shared_z(&self.actor.encoder, &ws.actor_enc, t_len, b, net.z_dim),
+        };
+        q_input(&net, &z_c, &batch.obs, &batch.actions, b, &mut ws.q_input);
+        let (mut qf_loss, mut q_mean) = ([0f32; 2], [0f32; 2]);
+        for k in 0..2 {
+            self.critic.q[k].forward(&self.critic_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
+            let q = ws.q_tapes[k].output();
+            ws.q_values[k].clear();
+            ws.q_values[k].extend_from_slice(&q[..b]);
+            // critic loss = ½(mean (q1 − y)² + mean (q2 − y)²): d/dq_k = (q_k − y)/B.
+            qf_loss[k] = q
+                .iter()
+                .zip(&ws.target)
+                .map(|(q, y)| (q - y) * (q - y))
+                .sum::<f32>()
+                / b as f32;
+            q_mean[k] = q.iter().sum::<f32>() / b as f32;
+        }
+        let in_dim = net.features_dim() + act;
+        let own_encoder = self.critic.encoder.is_some();
+        ws.d_features.resize(b * in_dim, 0.0);
+        ws.d_z.resize(b * net.z_dim, 0.0);
+        ws.d_z.fill(0.0);
+        for k in 0..2 {
+            ws.d_q.clear();
+            ws.d_q.extend(
+                ws.q_values[k]
+                    .iter()
+                    .zip(&ws.target)
+                    .map(|(q, y)| (q - y) / b as f32),
+            );
+            let d_x = (own_encoder && windows).then_some(&mut ws.d_features[..]);
+            self.critic.q[k].backward(
+                &self.critic_p.values,
+                Some(&mut self.critic_p.grads),
+                &ws.q_input,
+                b,
+                &ws.q_tapes[k],
+                &ws.d_q,
+                d_x,
+                &mut ws.scratch,
+            );
+            if own_encoder && windows {
+                // z is the first z_dim columns of the critic input.
+                for (dz, row) in ws
+                    .d_z
+                    .chunks_exact_mut(net.z_dim)
+                    .zip(ws.d_features.chunks_exact(in_dim))
+                {
+                    for (a, v) in dz.iter_mut().zip(row) {
+                        *a += v;
+                    }
+                }
+            }
+        }
+        if let Some(enc) = &self.critic.encoder {
+            enc.backward(
+                &self.critic_p.values,
+                &mut self.critic_p.grads,
+                win,
+                b,
+                t_len,
+                &ws.d_z,
+                &mut ws.critic_enc,
+                &mut ws.scratch,
+            );
+        }
+        self.critic_p.adam(self.config.learning_rate);
+
+        // --- actor -------------------------------------------------------------------------------
+        // The critic (just updated) is frozen: gradients reach the action, not its weights.
+        let z_c: Vec<f32> = match &self.critic.encoder {
+            Some(enc) => {
+                enc.forward(&self.critic_p.values, &[win], t_len, &mut ws.critic_enc);
+                enc.z(&ws.critic_enc, t_len).to_vec()
+            }
+            None => z_c,
+        };
+        q_input(
+            &net,
+            &z_c,
+            &batch.obs,
+            &ws.action[..b * act],
+            b,
+            &mut ws.q_input,
+        );
+        for k in 0..2 {
+            self.critic.q[k].forward(&self.critic_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
+        }
+        let mut actor_loss = 0f32;
+        ws.d_action.clear();
+        ws.d_action.resize(b * act, 0.0);
+        let f_dim = net.features_dim();
+        for k in 0..2 {
+            // d/dq_k of −mean(min(q1, q2)): −1/B on the smaller one, half each on a tie (candle's
+            // minimum).
+            ws.d_q.clear();
+            for i in 0..b {
+                let (q1, q2) = (ws.q_tapes[0].output()[i], ws.q_tapes[1].output()[i]);
+                let mine = if k == 0 { q1 } else { q2 };
+                let share = if q1 == q2 {
+                    0.5
+                } else if mine == q1.min(q2) {
+                    1.0
+                } else {
+                    0.0
+                };
+                ws.d_q.push(-share / b as f32);
+            }
+            ws.d_q_input.resize(b * in_dim, 0.0);
+            self.critic.q[k].backward(
+                &self.critic_p.values,
+                None,
+                &ws.q_input,
+                b,
+                &ws.q_tapes[k],
+                &ws.d_q,
+                Some(&mut ws.d_q_input[..]),
+                &mut ws.scratch,
+            );
+            for (da, row) in ws
+                .d_action
+                .chunks_exact_mut(act)
+                .zip(ws.d_q_input.chunks_exact(in_dim))
+            {
+                for (a, v) in da.iter_mut().zip(&row[f_dim..]) {
+                    *a += v;
+                }
+            }
+        }
+        for i in 0..b {
+            let q = ws.q_tapes[0].output()[i].min(ws.q_tapes[1].output()[i]);
+            actor_loss += ws.log_prob[i] * alpha32 - q;
+        }
+        actor_loss /= b as f32;
+        self.actor_backward(batch, win, alpha32);
+        self.actor_p.adam(self.config.learning_rate);
+
+        // --- target critic -------------------------------------------------------------------
+        let tau = self.config.tau as f32;
+        for &(t, shared, s) in &self.polyak {
+            let src = if shared {
+                &self.actor_p.values[s]
+            } else {
+                &self.critic_p.values[s]
+            };
+            kernels::polyak(&mut self.target_p.values[t], src, tau);
+        }
+
+        Ok(UpdateStats {
+            qf1_loss: qf_loss[0] as f64,
+            qf2_loss: qf_loss[1] as f64,
+            qf1_values: q_mean[0] as f64,
+            qf2_values: q_mean[1] as f64,
+            actor_loss: actor_loss as f64,
+            alpha,
+            alpha_loss: alpha_loss as f64,
+        })
+    }
+
+    /// Backward of the actor loss mean(α·log π(a|s) − min Q(s, a)) through the squashing, the
+    /// heads, the trunk and the encoder, given dL/da in `ws.d_action`.
+    fn actor_backward(&mut self, batch: &Batch, win: &[f32], alpha: f32) {
+        let net = &self.net;
+        let (b, act) = (batch.size, net.act_dim);
+        let ws = &mut self.ws;
+        let inv_b = 1.0 / b as f32;
+        for k in 0..2 {
+            ws.d_heads[k].clear();
+            ws.d_heads[k].resize(b * act, 0.0);
+        }
+        for i in 0..b * act {
+            let a = ws.action[i];
+            let raw = ws.log_std_raw[i];
+            let log_std = raw.clamp(LOG_STD_MIN as f32, LOG_STD_MAX as f32);
+            // log π = Σ −ε²/2 − log σ − ½log 2π − log(1 + ε_tanh − a²), a = tanh(μ + σ·ε).
+            let d_logp = alpha * inv_b;
+            let d_a = ws.d_action[i] + d_logp * 2.0 * a / (1.0 + TANH_EPS as f32 - a * a);
+            let d_u = d_a * (1.0 - a * a);
+            ws.d_heads[0][i] = d_u;
+            let d_log_std = d_u * log_std.exp() * ws.noise[i] - d_logp;
+            // Through the clamp: full gradient inside, half at a bound (candle's max/min), none out.
+            let lo = LOG_STD_MIN as f32;
+            let hi = LOG_STD_MAX as f32;
+            let through = if raw > lo && raw < hi {
+                1.0
+            } else if raw == lo || raw == hi {
+                0.5
+            } else {
+                0.0
+            };
+            ws.d_heads[1][i] = d_log_std * through;
+        }
+        let values = &self.actor_p.values;
+        let grads = &mut self.actor_p.grads;
+        let h = ws.trunk.output();
+        let hidden = self.actor.mean.n_in;
+        ws.d_h.clear();
+        ws.d_h.resize(b * hidden, 0.0);
+        ws.trunk_scratch.resize(b * hidden, 0.0);
+        for (k, head) in [self.actor.mean, self.actor.log_std].iter().enumerate() {
+            let (gw, gb) = pair_mut(grads, head.w, head.b);
+            dense_backward(
+                head.get(values),
+                h,
+                b,
+                &ws.d_heads[k],
+                Some((gw, gb)),
+                Some(&mut ws.trunk_scratch[..]),
+            );
+            for (d, v) in ws.d_h.iter_mut().zip(&ws.trunk_scratch) {
+                *d += v;
+            }
+        }
+        let windows = net.encoder.uses_window();
+        let f_dim = net.features_dim();
+        ws.d_features.resize(b * f_dim, 0.0);
+        self.actor.trunk.backward(
+            values,
+            Some(grads),
+            &ws.features,
+            b,
+            &ws.trunk,
+            &ws.d_h,
+            windows.then_some(&mut ws.d_features[..]),
+            &mut ws.scratch,
+        );
+        if windows {
+            let z_dim = net.z_dim;
+            ws.d_z.clear();
+            for row in ws.d_features.chunks_exact(f_dim).take(b) {
+                ws.d_z.extend_from_slice(&row[..z_dim]);
+            }
+            self.actor.encoder.backward(
+                values,
+                grads,
+                win,
+                b,
+                net.context_len,
+                &ws.d_z,
+                &mut ws.actor_enc,
+                &mut ws.scratch,
+            );
+        }
+    }
+}
+
+/// The actor's forward over observation parts (stacked rows) and their windows: encoder, features
+/// [z, obs], trunk, heads (`ws.mean`, `ws.log_std_raw`).
+fn actor_forward(
+    actor: &ActorNet,
+    values: &[Vec<f32>],
+    obs_parts: &[&[f32]],
+    win_parts: &[&[f32]],
+    t_len: usize,
+    ws: &mut Workspace,
+) {
+    actor
+        .encoder
+        .forward(values, win_parts, t_len, &mut ws.actor_enc);
+    let z = actor.encoder.z(&ws.actor_enc, t_len);
+    let (z_dim, obs_dim) = (actor.z_dim, actor.obs_dim);
+    ws.features.clear();
+    let mut rows = 0;
+    for part in obs_parts {
+        for o in part.chunks_exact(obs_dim) {
+            ws.features
+                .extend_from_slice(&z[rows * z_dim..(rows + 1) * z_dim]);
+            ws.features.extend_from_slice(o);
+            rows += 1;
+        }
+    }
+    actor
+        .trunk
+        .forward(values, &ws.features, rows, &mut ws.trunk);
+    let h = ws.trunk.output();
+    ws.mean.resize(rows * actor.mean.n_out, 0.0);
+    ws.log_std_raw.resize(rows * actor.log_std.n_out, 0.0);
+    dense_forward(actor.mean.get(values), h, rows, &mut ws.mean, false);
+    dense_forward(
+        actor.log_std.get(values),
+        h,
+        rows,
+        &mut ws.log_std_raw,
+        false,
+    );
+}
+
+/// Squashed-Gaussian sample for every row: a = tanh(μ + σ·ε) and log π(a) with the tanh correction.
+fn sample(
+    mean: &[f32],
+    log_std_raw: &[f32],
+    noise: &[f32],
+    act: usize,
+    action: &mut Vec<f32>,
+    log_prob: &mut Vec<f32>,
+) {
+    let rows = mean.len() / act;
+    action.resize(rows * act, 0.0);
+    log_prob.resize(rows, 0.0);
+    let half_log_2pi = (0.5 * (2.0 * std::f64::consts::PI).ln()) as f32;
+    for (r, lp_out) in log_prob.iter_mut().enumerate().take(rows) {
+        let mut lp = 0f32;
+        for j in r * act..(r + 1) * act {
+            let log_std = log_std_raw[j].clamp(LOG_STD_MIN as f32, LOG_STD_MAX as f32);
+            let a = (mean[j] + log_std.exp() * noise[j]).tanh();
+            action[j] = a;
+            let gaussian = noise[j] * noise[j] * -0.5 - log_std - half_log_2pi;
+            let correction = (-(a * a) + (1.0 + TANH_EPS) as f32).ln();
+            lp += gaussian - correction;
+        }
+        *lp_out = lp;
+    }
+}
+
+/// The critic's input [features, action] for B rows: features are [z, obs] (or obs alone).
+fn q_input(net: &NetConfig, z: &[f32], obs: &[f32], action: &[f32], b: usize, out: &mut Vec<f32>) {
+    let (o, a) = (net.obs_dim, net.act_dim);
+    let z_dim = if net.encoder.uses_window() {
+        net.z_dim
+    } else {
+        0
+    };
+    out.clear();
+    for i in 0..b {
+        out.extend_from_slice(&z[i * z_dim..(i + 1) * z_dim]);
+        out.extend_from_slice(&obs[i * o..(i + 1) * o]);
+        out.extend_from_slice(&action[i * a..(i + 1) * a]);
+    }
+}
+
+/// The actor's z for the first `b` rows (a shared encoder: the critic reads it detached).
+fn shared_z(enc: &Encoder, tape: &EncoderTape, t_len: usize, b: usize, z_dim: usize) -> Vec<f32> {
+    let z = enc.z(tape, t_len);
+    z[..(b * z_dim).min(z.len())].to_vec()
+}
