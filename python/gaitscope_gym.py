@@ -136,4 +136,6 @@ def make_env(condition="random", window=False, max_episode_steps=1000):
     # ClipAction first: gaitscope clips commands to [-1, 1] before damage and fatigue see them.
     env = gym.make("Ant-v4", max_episode_steps=max_episode_steps)
     env = gym.wrappers.ClipAction(Fatigue(GoalTask(env), condition))
+    # ClipAction widens the space to (-inf, inf); agents need the Ant's [-1, 1] to squash into.
+    env.action_space = env.env.action_space
     return FoldedWindow(env) if window else env

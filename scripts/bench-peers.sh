@@ -14,7 +14,8 @@ if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c 'import sbx, stable_ba
   echo "bench-peers: building $venv (stable-baselines3, sbx-rl, torch, jax, gymnasium, mujoco)"
   python3 -m venv "$venv"
   "$venv/bin/pip" install --quiet "stable-baselines3==2.9.2" "sbx-rl==0.28.0" "gymnasium==1.4.0" \
-    "mujoco==3.17.0" "imageio" "packaging"
+    "mujoco==3.17.0" "torch==2.15.0" "jax==0.10.2" "jaxlib==0.10.2" "flax==0.12.8" "optax==0.2.8" \
+    "numpy==2.4.6" "imageio==2.38.1" "packaging==26.4"
 fi
 (cd "$root" && ${CARGO:-cargo} build --release --quiet)
 bin="${CARGO_TARGET_DIR:-$root/target}/release/gaitscope"

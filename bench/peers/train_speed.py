@@ -2,8 +2,9 @@
 
 Same algorithm and hyperparameters as `gaitscope train` (SB3's SAC defaults with batch 256,
 replay 300k, one gradient step per env step, separate actor/critic feature extractors), on the
-task of python/gaitscope_gym.py. Times `--steps` learning steps after `--warmup` random ones and
-prints one JSON line. One thread: run it pinned (`taskset -c 1`), as scripts/bench-peers.sh does.
+task of python/gaitscope_gym.py. Times `--steps` learning steps after `--warmup` random ones (and
+`--untimed` learning steps, so JAX's compilation is not counted) and prints one JSON line. One
+thread: run it pinned (`taskset -c 1`), as scripts/bench-peers.sh does.
 """
 
 import argparse
@@ -48,6 +49,8 @@ def main():
                         help="none: 29-d obs; lstm: SB3 LSTM extractor; folded-mlp: MLP over 621-d")
     parser.add_argument("--warmup", type=int, default=1000)
     parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--untimed", type=int, default=50,
+                        help="learning steps before the clock starts (JAX compiles on the first)")
     args = parser.parse_args()
 
     env = make_env(window=args.model != "none")
@@ -78,16 +81,16 @@ def main():
         version = f"sbx {__import__('sbx').__version__}, jax {jax.__version__}"
 
     class Clock(BaseCallback):
-        """Wall time at the first learning step and at the end."""
+        """Wall time once learning has run `--untimed` steps, and at the end."""
 
         def _on_step(self):
-            if self.num_timesteps == args.warmup:
+            if self.num_timesteps == args.warmup + args.untimed:
                 self.start = time.perf_counter()
             return True
 
     clock = Clock()
     model = SAC("MlpPolicy", env, policy_kwargs=policy_kwargs, **kwargs)
-    model.learn(total_timesteps=args.warmup + args.steps, callback=clock)
+    model.learn(total_timesteps=args.warmup + args.untimed + args.steps, callback=clock)
     elapsed = time.perf_counter() - clock.start
     print(json.dumps({
         "peer": f"{'SB3' if args.lib == 'sb3' else 'SBX'} {args.model}",

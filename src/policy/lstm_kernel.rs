@@ -27,9 +27,13 @@ pub fn lstm_recurrence(projected: &Tensor, w_hh: &Tensor) -> Result<Tensor> {
 #[inline(always)]
 fn exp(x: f32) -> f32 {
     let x = x.clamp(-87.0, 88.0);
-    // Round to nearest by adding and removing 1.5·2²³ (no libm call, so it vectorises).
+    // Round to nearest by adding and removing 1.5·2²³ (no libm call, so it vectorises); the
+    // sum's low mantissa bits then hold n as an integer.
     const ROUND: f32 = 12_582_912.0;
-    let n = (x * std::f32::consts::LOG2_E + ROUND) - ROUND;
+    let shifted = x * std::f32::consts::LOG2_E + ROUND;
+    let n = shifted - ROUND;
+    // Separate multiplies and adds, no FMA: a checkpoint's actions stay bit-identical across
+    // CPUs and across versions of this kernel.
     let r = x - n * 0.693_359_4 + n * 2.121_944_4e-4;
     let mut p = 1.987_569_1e-4_f32;
     p = p * r + 1.398_199_9e-3;
@@ -38,7 +42,10 @@ fn exp(x: f32) -> f32 {
     p = p * r + 1.666_666_5e-1;
     p = p * r + 0.5;
     let e = p * r * r + r + 1.0;
-    e * f32::from_bits(((n as i32 + 127) as u32) << 23)
+    // 2ⁿ from n's bits with integer arithmetic: `n as i32` is a saturating cast that does not
+    // vectorise, and n ∈ [−126, 127] needs no saturation.
+    let n_int = shifted.to_bits().wrapping_sub(ROUND.to_bits());
+    e * f32::from_bits(n_int.wrapping_add(127) << 23)
 }
 
 #[inline(always)]
@@ -52,14 +59,17 @@ fn tanh(x: f32) -> f32 {
     1.0 - 2.0 / (exp(2.0 * x) + 1.0)
 }
 
-/// One batch row of gate pre-activations (i, f, g, o, each H wide) → activations in place,
-/// new cell and hidden state.
+/// One batch row of gate pre-activations (i, f, g, o, each H wide) → activations in place, new
+/// cell and hidden state.
 #[inline(always)]
 fn cell_forward_row(gates: &mut [f32], c_prev: &[f32], c_next: &mut [f32], h_next: &mut [f32]) {
     let h = c_prev.len();
-    let (gi, rest) = gates.split_at_mut(h);
+    // Every slice re-cut to exactly H (or 4H): the compiler then drops the bounds checks and
+    // vectorises the loop 8 wide.
+    let (gi, rest) = gates[..4 * h].split_at_mut(h);
     let (gf, rest) = rest.split_at_mut(h);
     let (gg, go) = rest.split_at_mut(h);
+    let (c_next, h_next) = (&mut c_next[..h], &mut h_next[..h]);
     for j in 0..h {
         let i = sigmoid(gi[j]);
         let f = sigmoid(gf[j]);
@@ -83,10 +93,11 @@ fn cell_backward_row(
     d_gates: &mut [f32],
 ) {
     let h = c.len();
-    let (ai, rest) = act.split_at(h);
+    let (c_prev, d_h, d_c) = (&c_prev[..h], &d_h[..h], &mut d_c[..h]);
+    let (ai, rest) = act[..4 * h].split_at(h);
     let (af, rest) = rest.split_at(h);
     let (ag, ao) = rest.split_at(h);
-    let (di, rest) = d_gates.split_at_mut(h);
+    let (di, rest) = d_gates[..4 * h].split_at_mut(h);
     let (df, rest) = rest.split_at_mut(h);
     let (dg, d_o) = rest.split_at_mut(h);
     for j in 0..h {
@@ -176,6 +187,8 @@ mod simd {
     }
 }
 
+/// One time step's cell update for all rows: gates (B, 4H) hold the pre-activations and become
+/// the activations.
 pub(crate) fn step_forward(g: &mut [f32], cp: &[f32], cn: &mut [f32], hn: &mut [f32], h: usize) {
     #[cfg(target_arch = "x86_64")]
     if simd::available() {

@@ -165,6 +165,8 @@ pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmT
     tape.hidden.resize((t_len + 1) * rows * h, 0.0);
     tape.cells[..rows * h].fill(0.0);
     tape.hidden[..rows * h].fill(0.0);
+    // Gates start at b_ih + b_hh and the projection accumulates onto them: the same sums, in the
+    // same order, as the reference's (x·W_ih) + b.
     let bias: Vec<f32> = l.b_ih.iter().zip(l.b_hh).map(|(a, b)| a + b).collect();
     for t in 0..t_len {
         let gates = &mut tape.gates[t * rows * g4..(t + 1) * rows * g4];
