@@ -360,6 +360,13 @@ mod tests {
                 &batch.window[b * wdim..(b + 1) * wdim],
                 online[&step].0.as_slice()
             );
+            // The next window is the window moved one step (the fused LSTM reuses its
+            // projection on that promise, and checks it per batch).
+            let entry = obs_dim + act_dim;
+            assert_eq!(
+                &batch.next_window[b * wdim..(b + 1) * wdim - entry],
+                &batch.window[b * wdim + entry..(b + 1) * wdim]
+            );
         }
     }
 

@@ -81,28 +81,45 @@ with_avx2! {
     }
 }
 
+/// Which columns of a layer's input gradient to compute, and where: `out` is rows × cols.len(),
+/// overwritten or accumulated into. A critic needs d/d(action) or d/dz only, not d/d(obs).
+pub struct InputGrad<'a> {
+    pub out: &'a mut [f32],
+    pub cols: std::ops::Range<usize>,
+    pub accumulate: bool,
+}
+
 /// Backward of one linear layer given `dy` (rows × n_out, already through the activation):
-/// weight and bias gradients (overwritten) when `grads` is given, and `dx = dy · Wᵀ` when asked.
+/// weight and bias gradients (overwritten) when `grads` is given, and the asked columns of
+/// `dx = dy · Wᵀ`.
 pub fn dense_backward(
     d: DenseRef,
     x: &[f32],
     rows: usize,
     dy: &[f32],
     grads: Option<(&mut [f32], &mut [f32])>,
-    dx: Option<&mut [f32]>,
+    dx: Option<InputGrad>,
 ) {
     let dy = &dy[..rows * d.n_out];
     if let Some((gw, gb)) = grads {
         mm_tn(gw, false, (d.n_in, d.n_out, rows), &x[..rows * d.n_in], dy);
         column_sums(dy, d.n_out, gb);
     }
-    if let Some(dx) = dx {
+    if let Some(InputGrad {
+        out,
+        cols,
+        accumulate,
+    }) = dx
+    {
+        // Columns a..b of dy · Wᵀ are dy · (rows a..b of W)ᵀ, a contiguous block of W.
+        let width = cols.len();
+        let w = &d.w[cols.start * d.n_out..cols.end * d.n_out];
         mm_nt(
-            &mut dx[..rows * d.n_in],
-            false,
-            (rows, d.n_in, d.n_out),
+            &mut out[..rows * width],
+            accumulate,
+            (rows, width, d.n_out),
             dy,
-            d.w,
+            w,
         );
     }
 }
@@ -155,39 +172,61 @@ pub struct LstmRef<'a> {
 /// Runs the LSTM from zero state over windows given in parts (each part rows_i × T × input,
 /// batch-major as the replay stores them); the parts' rows are stacked in order. The input
 /// projection is one GEMM per step and part, written straight into the time-major gates.
+///
+/// Given (windows, next windows) — every next window is its window shifted by one step plus the
+/// new (obs, action) — the second part's projection of steps 0..T−1 is the first part's of steps
+/// 1..T, copied: 17 distinct steps are projected instead of 32.
 pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmTape) {
     let (h, e) = (l.hidden, l.input);
     let g4 = 4 * h;
-    let rows: usize = parts.iter().map(|p| p.len() / (t_len * e)).sum();
+    let counts: Vec<usize> = parts.iter().map(|p| p.len() / (t_len * e)).collect();
+    let rows: usize = counts.iter().sum();
     tape.rows = rows;
     tape.gates.resize(t_len * rows * g4, 0.0);
     tape.cells.resize((t_len + 1) * rows * h, 0.0);
     tape.hidden.resize((t_len + 1) * rows * h, 0.0);
     tape.cells[..rows * h].fill(0.0);
     tape.hidden[..rows * h].fill(0.0);
+    let shifted =
+        parts.len() == 2 && counts[0] == counts[1] && is_shift(parts[0], parts[1], t_len, e);
     // Gates start at b_ih + b_hh and the projection accumulates onto them: the same sums, in the
     // same order, as the reference's (x·W_ih) + b.
     let bias: Vec<f32> = l.b_ih.iter().zip(l.b_hh).map(|(a, b)| a + b).collect();
     for t in 0..t_len {
         let gates = &mut tape.gates[t * rows * g4..(t + 1) * rows * g4];
-        for row in gates.chunks_exact_mut(g4) {
-            row.copy_from_slice(&bias);
-        }
         let mut offset = 0;
-        for part in parts {
-            let n = part.len() / (t_len * e);
-            // Row b of step t is part[b·T·E + t·E ..]: a strided view, no copy.
-            matmul(
-                &mut gates[offset * g4..(offset + n) * g4],
-                true,
-                (n, g4, e),
-                &part[t * e..],
-                (t_len * e, 1),
-                l.w_ih,
-                (g4, 1),
-            );
+        for (k, part) in parts.iter().enumerate() {
+            let n = counts[k];
+            let copied = shifted && k == 1 && t + 1 < t_len;
+            if !copied {
+                let block = &mut gates[offset * g4..(offset + n) * g4];
+                for row in block.chunks_exact_mut(g4) {
+                    row.copy_from_slice(&bias);
+                }
+                // Row b of step t is part[b·T·E + t·E ..]: a strided view, no copy.
+                matmul(
+                    block,
+                    true,
+                    (n, g4, e),
+                    &part[t * e..],
+                    (t_len * e, 1),
+                    l.w_ih,
+                    (g4, 1),
+                );
+            }
             offset += n;
         }
+    }
+    if shifted {
+        let n = counts[0];
+        for t in 0..t_len - 1 {
+            // Step t of the next windows = step t + 1 of the windows (its projection, bias in).
+            let (now, later) = tape.gates.split_at_mut((t + 1) * rows * g4);
+            now[t * rows * g4 + n * g4..(t + 1) * rows * g4].copy_from_slice(&later[..n * g4]);
+        }
+    }
+    for t in 0..t_len {
+        let gates = &mut tape.gates[t * rows * g4..(t + 1) * rows * g4];
         if t > 0 {
             mm(
                 gates,
@@ -201,6 +240,19 @@ pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmT
         let h_next = &mut tape.hidden[(t + 1) * rows * h..(t + 2) * rows * h];
         lstm_kernel::step_forward(gates, c_prev, c_next, h_next, h);
     }
+}
+
+/// Whether every window of `next` is the same row of `now` moved one step (bit for bit).
+fn is_shift(now: &[f32], next: &[f32], t_len: usize, e: usize) -> bool {
+    let width = t_len * e;
+    now.chunks_exact(width)
+        .zip(next.chunks_exact(width))
+        .all(|(a, b)| {
+            a[e..]
+                .iter()
+                .zip(&b[..width - e])
+                .all(|(x, y)| x.to_bits() == y.to_bits())
+        })
 }
 
 /// z = h_T of the last forward, rows × H.
@@ -300,6 +352,79 @@ with_avx2! {
     pub fn polyak(target: &mut [f32], source: &[f32], tau: f32) {
         for (d, s) in target.iter_mut().zip(source) {
             *d = tau * s + (1.0 - tau) * *d;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn lstm_params(input: usize, hidden: usize) -> [Vec<f32>; 4] {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut draw = |n: usize| {
+            (0..n)
+                .map(|_| rng.random_range(-0.3..0.3))
+                .collect::<Vec<f32>>()
+        };
+        [
+            draw(input * 4 * hidden),
+            draw(hidden * 4 * hidden),
+            draw(4 * hidden),
+            draw(4 * hidden),
+        ]
+    }
+
+    /// Windows and their successors (shifted by one, a new last entry), as the replay builds them.
+    fn windows(rows: usize, t_len: usize, e: usize) -> (Vec<f32>, Vec<f32>) {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let now: Vec<f32> = (0..rows * t_len * e)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
+        let mut next = Vec::new();
+        for w in now.chunks_exact(t_len * e) {
+            next.extend_from_slice(&w[e..]);
+            next.extend((0..e).map(|_| rng.random_range(-1.0f32..1.0)));
+        }
+        (now, next)
+    }
+
+    #[test]
+    fn shared_projection_of_next_windows_changes_nothing() {
+        let (rows, t_len, e, h) = (5, 4, 3, 8);
+        let [w_ih, w_hh, b_ih, b_hh] = lstm_params(e, h);
+        let l = LstmRef {
+            w_ih: &w_ih,
+            w_hh: &w_hh,
+            b_ih: &b_ih,
+            b_hh: &b_hh,
+            input: e,
+            hidden: h,
+        };
+        let (now, next) = windows(rows, t_len, e);
+        assert!(is_shift(&now, &next, t_len, e));
+        let mut broken = next.clone();
+        broken[1] += 1.0;
+        assert!(
+            !is_shift(&now, &broken, t_len, e),
+            "a changed entry is no shift"
+        );
+        let mut both = LstmTape::default();
+        lstm_forward(l, &[&now, &next], t_len, &mut both);
+        let z = lstm_output(&both, t_len, h).to_vec();
+        for (k, part) in [&now, &next].iter().enumerate() {
+            let mut alone = LstmTape::default();
+            lstm_forward(l, &[part], t_len, &mut alone);
+            let z_alone = lstm_output(&alone, t_len, h);
+            let z_part = &z[k * rows * h..(k + 1) * rows * h];
+            assert!(
+                z_part
+                    .iter()
+                    .zip(z_alone)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "part {k}: the copied projection must equal the computed one bit for bit"
+            );
         }
     }
 }

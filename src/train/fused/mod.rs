@@ -23,11 +23,12 @@ use super::adam::{Adam, BETA1, BETA2, EPS};
 use super::replay::Batch;
 use super::sac::UpdateStats;
 use crate::policy::layers::ParamStore;
+use crate::policy::lstm_kernel;
 use crate::policy::{
     EncoderKind, LOG_STD_MAX, LOG_STD_MIN, NetConfig, SacConfig, SacModel, TANH_EPS,
 };
 use kernels::{
-    DenseRef, LstmRef, LstmScratch, LstmTape, adam_step, dense_backward, dense_forward,
+    DenseRef, InputGrad, LstmRef, LstmScratch, LstmTape, adam_step, dense_backward, dense_forward,
     lstm_backward, lstm_forward, lstm_output, relu_backward,
 };
 
@@ -197,19 +198,39 @@ impl Mlp {
 
     /// Forward over `rows` rows of `x`; every layer's output stays in `tape`.
     fn forward(&self, values: &[Vec<f32>], x: &[f32], rows: usize, tape: &mut MlpTape) {
+        self.forward_parts(values, &[x], rows, tape);
+    }
+
+    /// Forward over inputs given in parts (stacked rows, `rows` in all), without stacking them.
+    fn forward_parts(
+        &self,
+        values: &[Vec<f32>],
+        parts: &[&[f32]],
+        rows: usize,
+        tape: &mut MlpTape,
+    ) {
         tape.outs.resize_with(self.layers.len(), Vec::new);
         for (i, layer) in self.layers.iter().enumerate() {
             let (before, after) = tape.outs.split_at_mut(i);
-            let input = if i == 0 { x } else { &before[i - 1] };
             let out = &mut after[0];
             out.resize(rows * layer.n_out, 0.0);
             let relu = i + 1 < self.layers.len() || self.relu_out;
-            dense_forward(layer.get(values), input, rows, out, relu);
+            if i == 0 {
+                let mut offset = 0;
+                for part in parts {
+                    let n = part.len() / layer.n_in;
+                    let block = &mut out[offset * layer.n_out..(offset + n) * layer.n_out];
+                    dense_forward(layer.get(values), part, n, block, relu);
+                    offset += n;
+                }
+            } else {
+                dense_forward(layer.get(values), &before[i - 1], rows, out, relu);
+            }
         }
     }
 
     /// Backward from `d_out` (rows × n_out, before the output ReLU if any): weight gradients into
-    /// `grads` when given, and `d_x` (rows × n_in of the first layer) when asked.
+    /// `grads` when given, and the asked columns of the input's gradient.
     #[allow(clippy::too_many_arguments)]
     fn backward(
         &self,
@@ -219,7 +240,7 @@ impl Mlp {
         rows: usize,
         tape: &MlpTape,
         d_out: &[f32],
-        d_x: Option<&mut [f32]>,
+        d_x: Option<InputGrad>,
         scratch: &mut [Vec<f32>; 2],
     ) {
         let n = self.layers.len();
@@ -239,14 +260,12 @@ impl Mlp {
             let input = if i == 0 { x } else { &tape.outs[i - 1] };
             let layer_grads = grads.as_deref_mut().map(|g| pair_mut(g, layer.w, layer.b));
             if i > 0 {
-                dense_backward(
-                    layer.get(values),
-                    input,
-                    rows,
-                    d,
-                    layer_grads,
-                    Some(&mut d_prev[..]),
-                );
+                let all = InputGrad {
+                    out: &mut d_prev[..],
+                    cols: 0..layer.n_in,
+                    accumulate: false,
+                };
+                dense_backward(layer.get(values), input, rows, d, layer_grads, Some(all));
                 relu_backward(&tape.outs[i - 1], &mut d_prev[..rows * layer.n_in]);
                 std::mem::swap(d, d_prev);
             } else {
@@ -343,18 +362,10 @@ impl Encoder {
             Encoder::Window(mlp) => {
                 let width = mlp.layers[0].n_in;
                 let rows: usize = parts.iter().map(|p| p.len() / width).sum();
-                let x: &[f32] = if parts.len() == 1 {
-                    parts[0]
-                } else {
-                    tape.input.clear();
-                    for p in parts {
-                        tape.input.extend_from_slice(p);
-                    }
-                    &tape.input
-                };
-                mlp.forward(values, x, rows, &mut tape.mlp);
+                mlp.forward_parts(values, parts, rows, &mut tape.mlp);
                 tape.z.clear();
-                tape.z.extend(tape.mlp.output().iter().map(|v| v.tanh()));
+                tape.z.extend_from_slice(tape.mlp.output());
+                lstm_kernel::tanh_in_place(&mut tape.z);
             }
         }
     }
@@ -442,8 +453,6 @@ struct EncoderTape {
     lstm: LstmTape,
     lstm_scratch: LstmScratch,
     mlp: MlpTape,
-    /// Stacked window parts (window-MLP over several parts).
-    input: Vec<f32>,
     z: Vec<f32>,
     d_pre: Vec<f32>,
 }
@@ -500,14 +509,11 @@ struct Workspace {
     q_values: [Vec<f32>; 2],
     target: Vec<f32>,
     d_q: Vec<f32>,
-    d_q_input: Vec<f32>,
     d_action: Vec<f32>,
     d_heads: [Vec<f32>; 2],
     d_h: Vec<f32>,
-    d_features: Vec<f32>,
     d_z: Vec<f32>,
     scratch: [Vec<f32>; 2],
-    trunk_scratch: Vec<f32>,
 }
 
 /// The fused learner: live weights and optimiser state while training runs.
@@ -731,11 +737,8 @@ impl FusedSac {
                 / b as f32;
             q_mean[k] = q.iter().sum::<f32>() / b as f32;
         }
-        let in_dim = net.features_dim() + act;
         let own_encoder = self.critic.encoder.is_some();
-        ws.d_features.resize(b * in_dim, 0.0);
         ws.d_z.resize(b * net.z_dim, 0.0);
-        ws.d_z.fill(0.0);
         for k in 0..2 {
             ws.d_q.clear();
             ws.d_q.extend(
@@ -744,7 +747,12 @@ impl FusedSac {
                     .zip(&ws.target)
                     .map(|(q, y)| (q - y) / b as f32),
             );
-            let d_x = (own_encoder && windows).then_some(&mut ws.d_features[..]);
+            // z is the first z_dim columns of the critic input; both Q-nets feed it.
+            let d_z = (own_encoder && windows).then(|| InputGrad {
+                out: &mut ws.d_z[..],
+                cols: 0..net.z_dim,
+                accumulate: k > 0,
+            });
             self.critic.q[k].backward(
                 &self.critic_p.values,
                 Some(&mut self.critic_p.grads),
@@ -752,21 +760,9 @@ impl FusedSac {
                 b,
                 &ws.q_tapes[k],
                 &ws.d_q,
-                d_x,
+                d_z,
                 &mut ws.scratch,
             );
-            if own_encoder && windows {
-                // z is the first z_dim columns of the critic input.
-                for (dz, row) in ws
-                    .d_z
-                    .chunks_exact_mut(net.z_dim)
-                    .zip(ws.d_features.chunks_exact(in_dim))
-                {
-                    for (a, v) in dz.iter_mut().zip(row) {
-                        *a += v;
-                    }
-                }
-            }
         }
         if let Some(enc) = &self.critic.encoder {
             enc.backward(
@@ -803,7 +799,6 @@ impl FusedSac {
             self.critic.q[k].forward(&self.critic_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
         }
         let mut actor_loss = 0f32;
-        ws.d_action.clear();
         ws.d_action.resize(b * act, 0.0);
         let f_dim = net.features_dim();
         for k in 0..2 {
@@ -822,7 +817,12 @@ impl FusedSac {
                 };
                 ws.d_q.push(-share / b as f32);
             }
-            ws.d_q_input.resize(b * in_dim, 0.0);
+            // Only the action's columns of the input gradient: the features are detached.
+            let d_action = InputGrad {
+                out: &mut ws.d_action[..],
+                cols: f_dim..f_dim + act,
+                accumulate: k > 0,
+            };
             self.critic.q[k].backward(
                 &self.critic_p.values,
                 None,
@@ -830,18 +830,9 @@ impl FusedSac {
                 b,
                 &ws.q_tapes[k],
                 &ws.d_q,
-                Some(&mut ws.d_q_input[..]),
+                Some(d_action),
                 &mut ws.scratch,
             );
-            for (da, row) in ws
-                .d_action
-                .chunks_exact_mut(act)
-                .zip(ws.d_q_input.chunks_exact(in_dim))
-            {
-                for (a, v) in da.iter_mut().zip(&row[f_dim..]) {
-                    *a += v;
-                }
-            }
         }
         for i in 0..b {
             let q = ws.q_tapes[0].output()[i].min(ws.q_tapes[1].output()[i]);
@@ -910,26 +901,32 @@ impl FusedSac {
         let grads = &mut self.actor_p.grads;
         let h = ws.trunk.output();
         let hidden = self.actor.mean.n_in;
-        ws.d_h.clear();
         ws.d_h.resize(b * hidden, 0.0);
-        ws.trunk_scratch.resize(b * hidden, 0.0);
         for (k, head) in [self.actor.mean, self.actor.log_std].iter().enumerate() {
             let (gw, gb) = pair_mut(grads, head.w, head.b);
+            let d_h = InputGrad {
+                out: &mut ws.d_h[..],
+                cols: 0..hidden,
+                accumulate: k > 0,
+            };
             dense_backward(
                 head.get(values),
                 h,
                 b,
                 &ws.d_heads[k],
                 Some((gw, gb)),
-                Some(&mut ws.trunk_scratch[..]),
+                Some(d_h),
             );
-            for (d, v) in ws.d_h.iter_mut().zip(&ws.trunk_scratch) {
-                *d += v;
-            }
         }
         let windows = net.encoder.uses_window();
-        let f_dim = net.features_dim();
-        ws.d_features.resize(b * f_dim, 0.0);
+        let z_dim = net.z_dim;
+        ws.d_z.resize(b * z_dim, 0.0);
+        // d/dz only: the observation columns of the features need no gradient.
+        let d_z = windows.then(|| InputGrad {
+            out: &mut ws.d_z[..],
+            cols: 0..z_dim,
+            accumulate: false,
+        });
         self.actor.trunk.backward(
             values,
             Some(grads),
@@ -937,15 +934,10 @@ impl FusedSac {
             b,
             &ws.trunk,
             &ws.d_h,
-            windows.then_some(&mut ws.d_features[..]),
+            d_z,
             &mut ws.scratch,
         );
         if windows {
-            let z_dim = net.z_dim;
-            ws.d_z.clear();
-            for row in ws.d_features.chunks_exact(f_dim).take(b) {
-                ws.d_z.extend_from_slice(&row[..z_dim]);
-            }
             self.actor.encoder.backward(
                 values,
                 grads,
