@@ -231,20 +231,12 @@ fn a_lane_that_ends_early_leaves_a_gap_not_a_line() {
     let clear = rerun::Clear::descriptor_is_recursive().component;
     for entity in gaitscope::telemetry::SERIES_ENTITIES {
         let path = format!("/random/{entity}");
-        let data: Vec<i64> = common::per_step(&chunks, &path, |c| {
+        let data = steps_with(&chunks, &path, |c| {
             c.iter_slices::<f64>(scalars).map(|s| s.len()).collect()
-        })
-        .into_iter()
-        .filter(|(_, n)| *n > 0)
-        .map(|(t, _)| t)
-        .collect();
-        let clears: Vec<i64> = common::per_step(&chunks, &path, |c| {
+        });
+        let clears = steps_with(&chunks, &path, |c| {
             c.iter_slices::<bool>(clear).map(|s| s.len()).collect()
-        })
-        .into_iter()
-        .filter(|(_, n)| *n > 0)
-        .map(|(t, _)| t)
-        .collect();
+        });
         if data.is_empty() {
             continue; // latent/probe series: a built-in policy has no z
         }
@@ -265,8 +257,17 @@ fn a_lane_that_ends_early_leaves_a_gap_not_a_line() {
         );
     }
     // The lane that ran to the end has no gap.
-    let zero_clears = common::per_step(&chunks, "/zero/joints/fatigue", |c| {
+    let zero_clears = steps_with(&chunks, "/zero/joints/fatigue", |c| {
         c.iter_slices::<bool>(clear).map(|s| s.len()).collect()
     });
-    assert!(zero_clears.iter().all(|(_, n)| *n == 0), "{zero_clears:?}");
+    assert!(zero_clears.is_empty(), "{zero_clears:?}");
+}
+
+/// Steps at which `entity` has a non-empty value; `count` gives each row's value count.
+fn steps_with(chunks: &[Chunk], entity: &str, count: impl Fn(&Chunk) -> Vec<usize>) -> Vec<i64> {
+    common::per_step(chunks, entity, count)
+        .into_iter()
+        .filter(|(_, n)| *n > 0)
+        .map(|(t, _)| t)
+        .collect()
 }
