@@ -55,31 +55,8 @@ fn sigmoid(x: f32) -> f32 {
 
 /// tanh through exp: glibc's `tanhf` goes through `expm1f` and is several times slower.
 #[inline(always)]
-fn tanh(x: f32) -> f32 {
+pub(crate) fn tanh(x: f32) -> f32 {
     1.0 - 2.0 / (exp(2.0 * x) + 1.0)
-}
-
-/// `tanh` over a slice with the gate loops' exp-based tanh, vectorised (the fused update's
-/// window-MLP encoder; libm's `tanhf` cost it 5 % of an update).
-pub(crate) fn tanh_in_place(v: &mut [f32]) {
-    #[inline(always)]
-    fn imp(v: &mut [f32]) {
-        for x in v.iter_mut() {
-            *x = tanh(*x);
-        }
-    }
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2,fma")]
-        fn avx2(v: &mut [f32]) {
-            imp(v)
-        }
-        if simd::available() {
-            // SAFETY: the CPU has AVX2 and FMA (just checked).
-            return unsafe { avx2(v) };
-        }
-    }
-    imp(v)
 }
 
 /// One batch row of gate pre-activations (i, f, g, o, each H wide) → activations in place, new

@@ -23,7 +23,6 @@ use super::adam::{Adam, BETA1, BETA2, EPS};
 use super::replay::Batch;
 use super::sac::UpdateStats;
 use crate::policy::layers::ParamStore;
-use crate::policy::lstm_kernel;
 use crate::policy::{
     EncoderKind, LOG_STD_MAX, LOG_STD_MIN, NetConfig, SacConfig, SacModel, TANH_EPS,
 };
@@ -365,7 +364,7 @@ impl Encoder {
                 mlp.forward_parts(values, parts, rows, &mut tape.mlp);
                 tape.z.clear();
                 tape.z.extend_from_slice(tape.mlp.output());
-                lstm_kernel::tanh_in_place(&mut tape.z);
+                kernels::tanh_in_place(&mut tape.z);
             }
         }
     }
@@ -506,7 +505,6 @@ struct Workspace {
     /// Critic input [features, action] (B rows).
     q_input: Vec<f32>,
     q_tapes: [MlpTape; 2],
-    q_values: [Vec<f32>; 2],
     target: Vec<f32>,
     d_q: Vec<f32>,
     d_action: Vec<f32>,
@@ -717,17 +715,19 @@ impl FusedSac {
         if let Some(enc) = &self.critic.encoder {
             enc.forward(&self.critic_p.values, &[win], t_len, &mut ws.critic_enc);
         }
-        let z_c: Vec<f32> = match &self.critic.encoder {
-            Some(enc) => enc.z(&ws.critic_enc, t_len).to_vec(),
-            None => shared_z(&self.actor.encoder, &ws.actor_enc, t_len, b, net.z_dim),
-        };
-        q_input(&net, &z_c, &batch.obs, &batch.actions, b, &mut ws.q_input);
+        let z_c = critic_z(
+            &self.critic,
+            &self.actor,
+            &ws.critic_enc,
+            &ws.actor_enc,
+            t_len,
+            b,
+        );
+        q_input(&net, z_c, &batch.obs, &batch.actions, b, &mut ws.q_input);
         let (mut qf_loss, mut q_mean) = ([0f32; 2], [0f32; 2]);
         for k in 0..2 {
             self.critic.q[k].forward(&self.critic_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
             let q = ws.q_tapes[k].output();
-            ws.q_values[k].clear();
-            ws.q_values[k].extend_from_slice(&q[..b]);
             // critic loss = ½(mean (q1 − y)² + mean (q2 − y)²): d/dq_k = (q_k − y)/B.
             qf_loss[k] = q
                 .iter()
@@ -742,7 +742,8 @@ impl FusedSac {
         for k in 0..2 {
             ws.d_q.clear();
             ws.d_q.extend(
-                ws.q_values[k]
+                ws.q_tapes[k]
+                    .output()
                     .iter()
                     .zip(&ws.target)
                     .map(|(q, y)| (q - y) / b as f32),
@@ -780,16 +781,20 @@ impl FusedSac {
 
         // --- actor -------------------------------------------------------------------------------
         // The critic (just updated) is frozen: gradients reach the action, not its weights.
-        let z_c: Vec<f32> = match &self.critic.encoder {
-            Some(enc) => {
-                enc.forward(&self.critic_p.values, &[win], t_len, &mut ws.critic_enc);
-                enc.z(&ws.critic_enc, t_len).to_vec()
-            }
-            None => z_c,
-        };
+        if let Some(enc) = &self.critic.encoder {
+            enc.forward(&self.critic_p.values, &[win], t_len, &mut ws.critic_enc);
+        }
+        let z_c = critic_z(
+            &self.critic,
+            &self.actor,
+            &ws.critic_enc,
+            &ws.actor_enc,
+            t_len,
+            b,
+        );
         q_input(
             &net,
-            &z_c,
+            z_c,
             &batch.obs,
             &ws.action[..b * act],
             b,
@@ -1036,8 +1041,18 @@ fn q_input(net: &NetConfig, z: &[f32], obs: &[f32], action: &[f32], b: usize, ou
     }
 }
 
-/// The actor's z for the first `b` rows (a shared encoder: the critic reads it detached).
-fn shared_z(enc: &Encoder, tape: &EncoderTape, t_len: usize, b: usize, z_dim: usize) -> Vec<f32> {
-    let z = enc.z(tape, t_len);
-    z[..(b * z_dim).min(z.len())].to_vec()
+/// The critic's z for the B rows of the last critic-encoder forward, or with a shared encoder
+/// the actor's z of the current observations (read detached).
+fn critic_z<'a>(
+    critic: &CriticNet,
+    actor: &ActorNet,
+    critic_tape: &'a EncoderTape,
+    actor_tape: &'a EncoderTape,
+    t_len: usize,
+    b: usize,
+) -> &'a [f32] {
+    match &critic.encoder {
+        Some(enc) => enc.z(critic_tape, t_len),
+        None => &actor.encoder.z(actor_tape, t_len)[..b * actor.z_dim],
+    }
 }
