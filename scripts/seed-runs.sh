@@ -64,8 +64,14 @@ run_lane() {
   echo "$(date -u +%FT%TZ) lane $core: done"
 }
 
+# Live trainers only: a session that ended kills its trainers but leaves their pid files.
 trainer_pids() {
-  cat "$state"/trainer-*.pid 2>/dev/null || true
+  local f pid
+  for f in "$state"/trainer-*.pid; do
+    [ -f "$f" ] || continue
+    pid=$(cat "$f")
+    if kill -0 "$pid" 2>/dev/null; then echo "$pid"; else rm -f "$f"; fi
+  done
 }
 
 case "${1:-status}" in

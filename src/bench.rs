@@ -197,6 +197,8 @@ impl BareAnt {
 #[derive(Debug, Clone, Serialize)]
 pub struct TrainBenchRow {
     pub encoder: crate::policy::EncoderKind,
+    /// Threads per update.
+    pub threads: usize,
     /// Env steps/s with one update per step (acting, env, replay, update).
     pub train_steps_per_s: f64,
     /// Updates/s with no env: sample a batch, forward and backward passes, optimiser steps.
@@ -210,6 +212,7 @@ pub fn bench_train(
     encoders: &[crate::policy::EncoderKind],
     steps: u64,
     update: crate::train::sac::UpdatePath,
+    threads: usize,
     scratch: &std::path::Path,
 ) -> Result<Vec<TrainBenchRow>, crate::train::TrainError> {
     use crate::policy::SacModel;
@@ -230,6 +233,7 @@ pub fn bench_train(
         opts.progress_bar = false;
         opts.checkpoint_every = u64::MAX;
         opts.update = update;
+        opts.threads = threads;
         let summary = train::train_ant(opts.clone(), false, Arc::new(AtomicBool::new(false)))?;
         let _ = std::fs::remove_dir_all(&dir);
 
@@ -239,6 +243,7 @@ pub fn bench_train(
         let model = SacModel::new(net.clone(), 1.0, 0, &device)?;
         let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
         learner.set_update_path(update)?;
+        learner.set_threads(threads)?;
         let window_len = if encoder.uses_window() {
             net.context_len
         } else {
@@ -291,6 +296,7 @@ pub fn bench_train(
         rows.push(TrainBenchRow {
             encoder,
             train_steps_per_s: summary.learning_steps_per_s.unwrap_or(f64::NAN),
+            threads,
             updates_per_s,
             act_per_s,
         });

@@ -141,6 +141,13 @@ struct TrainArgs {
     /// No progress bar (logs still go to metrics.jsonl).
     #[arg(long)]
     quiet: bool,
+    /// Threads per gradient update (default: every core this process may run on, so a run
+    /// pinned with `taskset -c N` uses one). The trained weights do not depend on it.
+    #[arg(long)]
+    threads: Option<usize>,
+    /// The update: fused (fast, the default) or reference (candle's autograd, for comparison).
+    #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
+    update: UpdatePath,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -323,6 +330,9 @@ enum BenchCommand {
         /// The update to time: fused (what `train` runs) or reference (candle's autograd).
         #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
         update: UpdatePath,
+        /// Threads per fused update (1: per-core figures, comparable with the peers).
+        #[arg(long, default_value_t = 1)]
+        threads: usize,
         /// One JSON object per encoder instead of the table.
         #[arg(long)]
         json: bool,
@@ -444,14 +454,15 @@ fn run(cli: Cli) -> Result<()> {
             steps,
             encoders,
             update,
+            threads,
             json,
         }) => {
-            if steps == 0 {
-                bail!("--steps must be at least 1");
+            if steps == 0 || threads == 0 {
+                bail!("--steps and --threads must be at least 1");
             }
             let scratch =
                 std::env::temp_dir().join(format!("gaitscope-bench-{}", std::process::id()));
-            let rows = gaitscope::bench::bench_train(&encoders, steps, update, &scratch)?;
+            let rows = gaitscope::bench::bench_train(&encoders, steps, update, threads, &scratch)?;
             let _ = std::fs::remove_dir_all(&scratch);
             if json {
                 for r in &rows {
@@ -555,6 +566,12 @@ fn train_command(args: TrainArgs) -> Result<()> {
     if let Some(l) = args.learning_starts {
         opts.sac.learning_starts = l;
     }
+    opts.update = args.update;
+    opts.threads = match args.threads {
+        Some(0) => bail!("--threads must be at least 1"),
+        Some(n) => n,
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    };
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
     ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))

@@ -109,6 +109,7 @@ fn options(encoder: EncoderKind, steps: u64, out: std::path::PathBuf) -> TrainOp
         log_every: 500,
         progress_bar: false,
         update: UpdatePath::Fused,
+        threads: 1,
     }
 }
 

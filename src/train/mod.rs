@@ -81,6 +81,8 @@ pub struct TrainOptions {
     pub progress_bar: bool,
     /// Fused (the fast path) or candle's autograd; the same algorithm.
     pub update: UpdatePath,
+    /// Threads per fused update (1: the training thread alone). The results do not depend on it.
+    pub threads: usize,
 }
 
 /// One env step as the trainer sees it.
@@ -220,6 +222,7 @@ pub fn train(
         (learner, state, replay)
     };
     learner.set_update_path(opts.update)?;
+    learner.set_threads(opts.threads)?;
     let net = opts.net.clone();
     let mut metrics = MetricsLog::open(&opts.out)?;
     let progress = progress_bar(&opts, state.steps_done);
@@ -715,5 +718,6 @@ pub fn ant_options(
         log_every: 1_000,
         progress_bar: true,
         update: UpdatePath::Fused,
+        threads: 1,
     }
 }

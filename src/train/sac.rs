@@ -87,6 +87,15 @@ impl SacLearner {
         Ok(())
     }
 
+    /// Threads each fused update may use (see [`FusedSac::set_threads`]); the reference path
+    /// keeps candle's own setting.
+    pub fn set_threads(&mut self, threads: usize) -> Result<()> {
+        match &mut self.fused {
+            Some(fused) => fused.set_threads(threads),
+            None => Ok(()),
+        }
+    }
+
     /// Makes `model` and the optimisers current (the fused path keeps its own copy while it
     /// trains); a no-op on the reference path.
     pub fn sync_model(&mut self) -> Result<()> {

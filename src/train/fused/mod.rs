@@ -492,26 +492,78 @@ impl CriticNet {
 /// Every buffer one update needs, allocated on first use and reused.
 #[derive(Default)]
 struct Workspace {
-    actor_enc: EncoderTape,
+    actor: ActorTape,
     critic_enc: EncoderTape,
-    /// Actor features [z, obs] over the current then the next observations (2B rows).
-    features: Vec<f32>,
-    trunk: MlpTape,
-    mean: Vec<f32>,
-    log_std_raw: Vec<f32>,
+    target_enc: EncoderTape,
     noise: Vec<f32>,
     action: Vec<f32>,
     log_prob: Vec<f32>,
     /// Critic input [features, action] (B rows).
     q_input: Vec<f32>,
-    q_tapes: [MlpTape; 2],
+    /// One per Q-network, so the two can run at once.
+    q: [QWork; 2],
     target: Vec<f32>,
-    d_q: Vec<f32>,
     d_action: Vec<f32>,
     d_heads: [Vec<f32>; 2],
     d_h: Vec<f32>,
     d_z: Vec<f32>,
     scratch: [Vec<f32>; 2],
+}
+
+/// The actor's forward buffers.
+#[derive(Default)]
+struct ActorTape {
+    enc: EncoderTape,
+    /// Features [z, obs] over the current then the next observations (2B rows).
+    features: Vec<f32>,
+    trunk: MlpTape,
+    mean: Vec<f32>,
+    log_std_raw: Vec<f32>,
+}
+
+/// One Q-network's buffers: its tape, dL/dq, its share of an input gradient, backward scratch.
+#[derive(Default)]
+struct QWork {
+    tape: MlpTape,
+    d_q: Vec<f32>,
+    d_input: Vec<f32>,
+    scratch: [Vec<f32>; 2],
+}
+
+/// `a` and `b` at once on the current rayon pool when `parallel`, else one after the other.
+/// Either way each computes the same thing, so results do not depend on it.
+fn both<A: Send, B: Send>(
+    parallel: bool,
+    a: impl FnOnce() -> A + Send,
+    b: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    if parallel {
+        rayon::join(a, b)
+    } else {
+        (a(), b())
+    }
+}
+
+/// Moves the gradients of `mlp`'s parameters out of `grads` into a vector of the same length
+/// (empty elsewhere), so two networks of one group can run their backward passes at once.
+fn take_grads(grads: &mut [Vec<f32>], mlp: &Mlp) -> Vec<Vec<f32>> {
+    let mut taken = vec![Vec::new(); grads.len()];
+    for layer in &mlp.layers {
+        for i in [layer.w, layer.b] {
+            std::mem::swap(&mut taken[i], &mut grads[i]);
+        }
+    }
+    taken
+}
+
+/// Puts back what [`take_grads`] moved out.
+fn put_back_grads(grads: &mut [Vec<f32>], taken: Vec<Vec<f32>>, mlp: &Mlp) {
+    let mut taken = taken;
+    for layer in &mlp.layers {
+        for i in [layer.w, layer.b] {
+            std::mem::swap(&mut taken[i], &mut grads[i]);
+        }
+    }
 }
 
 /// The fused learner: live weights and optimiser state while training runs.
@@ -529,6 +581,8 @@ pub struct FusedSac {
     /// (target index, source is the actor's, source index) for the Polyak update.
     polyak: Vec<(usize, bool, usize)>,
     ws: Workspace,
+    /// With more than one thread: the pool the update's GEMMs split their tiles over.
+    pool: Option<std::sync::Arc<rayon::ThreadPool>>,
 }
 
 impl FusedSac {
@@ -584,7 +638,24 @@ impl FusedSac {
             target,
             polyak,
             ws: Workspace::default(),
+            pool: None,
         })
+    }
+
+    /// Threads for each update (1: the caller's thread alone). More split every large GEMM's
+    /// output tiles over a pool of that size; the arithmetic, and so every result, is the same.
+    pub fn set_threads(&mut self, threads: usize) -> Result<()> {
+        self.pool = match threads {
+            0 | 1 => None,
+            n => Some(std::sync::Arc::new(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n)
+                    .thread_name(|i| format!("gaitscope-update-{i}"))
+                    .build()
+                    .map_err(|e| candle_core::Error::Msg(format!("update thread pool: {e}")))?,
+            )),
+        };
+        Ok(())
     }
 
     /// Puts the live weights and Adam state back into the model and the reference optimisers
@@ -620,12 +691,12 @@ impl FusedSac {
             &[obs],
             &parts,
             t_len,
-            &mut self.ws,
+            &mut self.ws.actor,
         );
         let ws = &mut self.ws;
         sample(
-            &ws.mean,
-            &ws.log_std_raw,
+            &ws.actor.mean,
+            &ws.actor.log_std_raw,
             noise,
             self.net.act_dim,
             &mut ws.action,
@@ -637,10 +708,22 @@ impl FusedSac {
     /// One gradient step on `batch`; `rng` draws the reparameterisation noise exactly as the
     /// reference does (current actions first, then next actions).
     pub fn update(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
+        match self.pool.clone() {
+            None => self.update_here(batch, rng),
+            Some(pool) => pool.install(|| {
+                // The GEMM thread count is per thread: set it on the pool's thread that runs this.
+                crate::policy::gemm::set_threads(pool.current_num_threads());
+                self.update_here(batch, rng)
+            }),
+        }
+    }
+
+    fn update_here(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
         let b = batch.size;
         let net = self.net.clone();
         let (act, t_len) = (net.act_dim, net.context_len);
         let windows = net.encoder.uses_window();
+        let parallel = self.pool.is_some();
         let (win, next_win): (&[f32], &[f32]) = if windows {
             (&batch.window, &batch.next_window)
         } else {
@@ -651,19 +734,43 @@ impl FusedSac {
         ws.noise
             .extend((0..2 * b * act).map(|_| rng.sample::<f32, _>(StandardNormal)));
 
-        // --- actor forward, current and next observations as one batch ------------------------
+        // --- forward passes that need nothing from each other ---------------------------------
+        // The actor over current and next observations (one 2B batch), beside the target's and
+        // the critic's encoders (the critic's weights do not change before its own step).
         let win_parts: Vec<&[f32]> = if windows { vec![win, next_win] } else { vec![] };
-        actor_forward(
+        let target_enc = self.target.encoder.as_ref().unwrap_or(&Encoder::None);
+        let (actor, actor_p, target_p, critic, critic_p) = (
             &self.actor,
-            &self.actor_p.values,
-            &[&batch.obs, &batch.next_obs],
-            &win_parts,
-            t_len,
-            ws,
+            &self.actor_p,
+            &self.target_p,
+            &self.critic,
+            &self.critic_p,
+        );
+        let (actor_tape, target_tape, critic_tape) =
+            (&mut ws.actor, &mut ws.target_enc, &mut ws.critic_enc);
+        both(
+            parallel,
+            || {
+                let obs_parts = [batch.obs.as_slice(), batch.next_obs.as_slice()];
+                actor_forward(
+                    actor,
+                    &actor_p.values,
+                    &obs_parts,
+                    &win_parts,
+                    t_len,
+                    actor_tape,
+                );
+            },
+            || {
+                target_enc.forward(&target_p.values, &[next_win], t_len, target_tape);
+                if let Some(enc) = &critic.encoder {
+                    enc.forward(&critic_p.values, &[win], t_len, critic_tape);
+                }
+            },
         );
         sample(
-            &ws.mean,
-            &ws.log_std_raw,
+            &ws.actor.mean,
+            &ws.actor.log_std_raw,
             &ws.noise,
             act,
             &mut ws.action,
@@ -681,28 +788,26 @@ impl FusedSac {
         self.alpha_p.adam(self.config.learning_rate);
 
         // --- critic target ---------------------------------------------------------------------
-        let target_enc = self.target.encoder.as_ref().unwrap_or(&Encoder::None);
-        target_enc.forward(
-            &self.target_p.values,
-            &[next_win],
-            t_len,
-            &mut ws.critic_enc,
-        );
         q_input(
             &net,
-            target_enc.z(&ws.critic_enc, t_len),
+            target_enc.z(&ws.target_enc, t_len),
             &batch.next_obs,
             &ws.action[b * act..2 * b * act],
             b,
             &mut ws.q_input,
         );
-        for k in 0..2 {
-            self.target.q[k].forward(&self.target_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
-        }
+        let [w0, w1] = &mut ws.q;
+        let [t0, t1] = &self.target.q;
+        let (values, input) = (&self.target_p.values, &ws.q_input);
+        both(
+            parallel,
+            || t0.forward(values, input, b, &mut w0.tape),
+            || t1.forward(values, input, b, &mut w1.tape),
+        );
         ws.target.clear();
         let (gamma, alpha32) = (self.config.gamma as f32, alpha as f32);
         for i in 0..b {
-            let q = ws.q_tapes[0].output()[i].min(ws.q_tapes[1].output()[i]);
+            let q = ws.q[0].tape.output()[i].min(ws.q[1].tape.output()[i]);
             let next_q = q - ws.log_prob[b + i] * alpha32;
             // Bootstrap cut on termination only: a truncated episode still has a future.
             let not_done = 1.0 - batch.terminated[i];
@@ -712,60 +817,32 @@ impl FusedSac {
 
         // --- critic ----------------------------------------------------------------------------
         // Features: the critic's own encoder (tracked), or the actor's z (shared, no gradient).
-        if let Some(enc) = &self.critic.encoder {
-            enc.forward(&self.critic_p.values, &[win], t_len, &mut ws.critic_enc);
-        }
         let z_c = critic_z(
             &self.critic,
             &self.actor,
             &ws.critic_enc,
-            &ws.actor_enc,
+            &ws.actor.enc,
             t_len,
             b,
         );
         q_input(&net, z_c, &batch.obs, &batch.actions, b, &mut ws.q_input);
-        let (mut qf_loss, mut q_mean) = ([0f32; 2], [0f32; 2]);
-        for k in 0..2 {
-            self.critic.q[k].forward(&self.critic_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
-            let q = ws.q_tapes[k].output();
-            // critic loss = ½(mean (q1 − y)² + mean (q2 − y)²): d/dq_k = (q_k − y)/B.
-            qf_loss[k] = q
-                .iter()
-                .zip(&ws.target)
-                .map(|(q, y)| (q - y) * (q - y))
-                .sum::<f32>()
-                / b as f32;
-            q_mean[k] = q.iter().sum::<f32>() / b as f32;
-        }
         let own_encoder = self.critic.encoder.is_some();
-        ws.d_z.resize(b * net.z_dim, 0.0);
-        for k in 0..2 {
-            ws.d_q.clear();
-            ws.d_q.extend(
-                ws.q_tapes[k]
-                    .output()
-                    .iter()
-                    .zip(&ws.target)
-                    .map(|(q, y)| (q - y) / b as f32),
-            );
-            // z is the first z_dim columns of the critic input; both Q-nets feed it.
-            let d_z = (own_encoder && windows).then(|| InputGrad {
-                out: &mut ws.d_z[..],
-                cols: 0..net.z_dim,
-                accumulate: k > 0,
-            });
-            self.critic.q[k].backward(
-                &self.critic_p.values,
-                Some(&mut self.critic_p.grads),
-                &ws.q_input,
-                b,
-                &ws.q_tapes[k],
-                &ws.d_q,
-                d_z,
-                &mut ws.scratch,
-            );
-        }
-        if let Some(enc) = &self.critic.encoder {
+        // z is the first z_dim columns of the critic input; both Q-nets feed it.
+        let d_z_cols = (own_encoder && windows).then_some(0..net.z_dim);
+        let [q0, q1] = &self.critic.q;
+        let mut q1_grads = take_grads(&mut self.critic_p.grads, q1);
+        let (values, q0_grads) = (&self.critic_p.values, &mut self.critic_p.grads);
+        let [w0, w1] = &mut ws.q;
+        let (input, target) = (&ws.q_input, &ws.target);
+        let cols = (d_z_cols.clone(), d_z_cols.clone());
+        let ((qf1_loss, q1_mean), (qf2_loss, q2_mean)) = both(
+            parallel,
+            || critic_step(q0, values, q0_grads, input, target, b, cols.0, w0),
+            || critic_step(q1, values, &mut q1_grads, input, target, b, cols.1, w1),
+        );
+        put_back_grads(&mut self.critic_p.grads, q1_grads, q1);
+        if let (Some(enc), Some(_)) = (&self.critic.encoder, d_z_cols) {
+            sum_pair(&ws.q[0].d_input, &ws.q[1].d_input, &mut ws.d_z);
             enc.backward(
                 &self.critic_p.values,
                 &mut self.critic_p.grads,
@@ -788,7 +865,7 @@ impl FusedSac {
             &self.critic,
             &self.actor,
             &ws.critic_enc,
-            &ws.actor_enc,
+            &ws.actor.enc,
             t_len,
             b,
         );
@@ -800,50 +877,44 @@ impl FusedSac {
             b,
             &mut ws.q_input,
         );
-        for k in 0..2 {
-            self.critic.q[k].forward(&self.critic_p.values, &ws.q_input, b, &mut ws.q_tapes[k]);
-        }
+        let values = &self.critic_p.values;
+        let [w0, w1] = &mut ws.q;
+        let input = &ws.q_input;
+        both(
+            parallel,
+            || q0.forward(values, input, b, &mut w0.tape),
+            || q1.forward(values, input, b, &mut w1.tape),
+        );
         let mut actor_loss = 0f32;
-        ws.d_action.resize(b * act, 0.0);
-        let f_dim = net.features_dim();
-        for k in 0..2 {
-            // d/dq_k of −mean(min(q1, q2)): −1/B on the smaller one, half each on a tie (candle's
-            // minimum).
-            ws.d_q.clear();
-            for i in 0..b {
-                let (q1, q2) = (ws.q_tapes[0].output()[i], ws.q_tapes[1].output()[i]);
-                let mine = if k == 0 { q1 } else { q2 };
-                let share = if q1 == q2 {
-                    0.5
-                } else if mine == q1.min(q2) {
-                    1.0
-                } else {
-                    0.0
-                };
-                ws.d_q.push(-share / b as f32);
-            }
-            // Only the action's columns of the input gradient: the features are detached.
-            let d_action = InputGrad {
-                out: &mut ws.d_action[..],
-                cols: f_dim..f_dim + act,
-                accumulate: k > 0,
-            };
-            self.critic.q[k].backward(
-                &self.critic_p.values,
-                None,
-                &ws.q_input,
-                b,
-                &ws.q_tapes[k],
-                &ws.d_q,
-                Some(d_action),
-                &mut ws.scratch,
-            );
+        for w in &mut ws.q {
+            w.d_q.clear();
         }
         for i in 0..b {
-            let q = ws.q_tapes[0].output()[i].min(ws.q_tapes[1].output()[i]);
-            actor_loss += ws.log_prob[i] * alpha32 - q;
+            let (v1, v2) = (ws.q[0].tape.output()[i], ws.q[1].tape.output()[i]);
+            actor_loss += ws.log_prob[i] * alpha32 - v1.min(v2);
+            // d/dq_k of −mean(min(q1, q2)): −1/B on the smaller one, half each on a tie
+            // (candle's minimum).
+            let (s1, s2) = if v1 == v2 {
+                (0.5, 0.5)
+            } else if v1 < v2 {
+                (1.0, 0.0)
+            } else {
+                (0.0, 1.0)
+            };
+            for (w, share) in ws.q.iter_mut().zip([s1, s2]) {
+                w.d_q.push(-share / b as f32);
+            }
         }
         actor_loss /= b as f32;
+        // Only the action's columns of the input gradient: the features are detached.
+        let f_dim = net.features_dim();
+        let [w0, w1] = &mut ws.q;
+        both(
+            parallel,
+            || action_grad(q0, values, input, b, f_dim..f_dim + act, w0),
+            || action_grad(q1, values, input, b, f_dim..f_dim + act, w1),
+        );
+        sum_pair(&ws.q[0].d_input, &ws.q[1].d_input, &mut ws.d_action);
         self.actor_backward(batch, win, alpha32);
         self.actor_p.adam(self.config.learning_rate);
 
@@ -859,10 +930,10 @@ impl FusedSac {
         }
 
         Ok(UpdateStats {
-            qf1_loss: qf_loss[0] as f64,
-            qf2_loss: qf_loss[1] as f64,
-            qf1_values: q_mean[0] as f64,
-            qf2_values: q_mean[1] as f64,
+            qf1_loss: qf1_loss as f64,
+            qf2_loss: qf2_loss as f64,
+            qf1_values: q1_mean as f64,
+            qf2_values: q2_mean as f64,
             actor_loss: actor_loss as f64,
             alpha,
             alpha_loss: alpha_loss as f64,
@@ -882,7 +953,7 @@ impl FusedSac {
         }
         for i in 0..b * act {
             let a = ws.action[i];
-            let raw = ws.log_std_raw[i];
+            let raw = ws.actor.log_std_raw[i];
             let log_std = raw.clamp(LOG_STD_MIN as f32, LOG_STD_MAX as f32);
             // log π = Σ −ε²/2 − log σ − ½log 2π − log(1 + ε_tanh − a²), a = tanh(μ + σ·ε).
             let d_logp = alpha * inv_b;
@@ -904,7 +975,7 @@ impl FusedSac {
         }
         let values = &self.actor_p.values;
         let grads = &mut self.actor_p.grads;
-        let h = ws.trunk.output();
+        let h = ws.actor.trunk.output();
         let hidden = self.actor.mean.n_in;
         ws.d_h.resize(b * hidden, 0.0);
         for (k, head) in [self.actor.mean, self.actor.log_std].iter().enumerate() {
@@ -935,9 +1006,9 @@ impl FusedSac {
         self.actor.trunk.backward(
             values,
             Some(grads),
-            &ws.features,
+            &ws.actor.features,
             b,
-            &ws.trunk,
+            &ws.actor.trunk,
             &ws.d_h,
             d_z,
             &mut ws.scratch,
@@ -950,7 +1021,7 @@ impl FusedSac {
                 b,
                 net.context_len,
                 &ws.d_z,
-                &mut ws.actor_enc,
+                &mut ws.actor.enc,
                 &mut ws.scratch,
             );
         }
@@ -958,44 +1029,125 @@ impl FusedSac {
 }
 
 /// The actor's forward over observation parts (stacked rows) and their windows: encoder, features
-/// [z, obs], trunk, heads (`ws.mean`, `ws.log_std_raw`).
+/// [z, obs], trunk, heads (`tape.mean`, `tape.log_std_raw`).
 fn actor_forward(
     actor: &ActorNet,
     values: &[Vec<f32>],
     obs_parts: &[&[f32]],
     win_parts: &[&[f32]],
     t_len: usize,
-    ws: &mut Workspace,
+    tape: &mut ActorTape,
 ) {
     actor
         .encoder
-        .forward(values, win_parts, t_len, &mut ws.actor_enc);
-    let z = actor.encoder.z(&ws.actor_enc, t_len);
+        .forward(values, win_parts, t_len, &mut tape.enc);
+    let z = actor.encoder.z(&tape.enc, t_len);
     let (z_dim, obs_dim) = (actor.z_dim, actor.obs_dim);
-    ws.features.clear();
+    tape.features.clear();
     let mut rows = 0;
     for part in obs_parts {
         for o in part.chunks_exact(obs_dim) {
-            ws.features
+            tape.features
                 .extend_from_slice(&z[rows * z_dim..(rows + 1) * z_dim]);
-            ws.features.extend_from_slice(o);
+            tape.features.extend_from_slice(o);
             rows += 1;
         }
     }
     actor
         .trunk
-        .forward(values, &ws.features, rows, &mut ws.trunk);
-    let h = ws.trunk.output();
-    ws.mean.resize(rows * actor.mean.n_out, 0.0);
-    ws.log_std_raw.resize(rows * actor.log_std.n_out, 0.0);
-    dense_forward(actor.mean.get(values), h, rows, &mut ws.mean, false);
+        .forward(values, &tape.features, rows, &mut tape.trunk);
+    let h = tape.trunk.output();
+    tape.mean.resize(rows * actor.mean.n_out, 0.0);
+    tape.log_std_raw.resize(rows * actor.log_std.n_out, 0.0);
+    dense_forward(actor.mean.get(values), h, rows, &mut tape.mean, false);
     dense_forward(
         actor.log_std.get(values),
         h,
         rows,
-        &mut ws.log_std_raw,
+        &mut tape.log_std_raw,
         false,
     );
+}
+
+/// One Q-network's critic step: forward, ½·mean (q − y)² and mean q, then the backward pass into
+/// `grads` and, when asked, the given input columns' gradient into `w.d_input`.
+#[allow(clippy::too_many_arguments)]
+fn critic_step(
+    q: &Mlp,
+    values: &[Vec<f32>],
+    grads: &mut [Vec<f32>],
+    input: &[f32],
+    target: &[f32],
+    b: usize,
+    d_input_cols: Option<std::ops::Range<usize>>,
+    w: &mut QWork,
+) -> (f32, f32) {
+    q.forward(values, input, b, &mut w.tape);
+    let out = w.tape.output();
+    // critic loss = ½(mean (q1 − y)² + mean (q2 − y)²): d/dq_k = (q_k − y)/B.
+    let loss = out
+        .iter()
+        .zip(target)
+        .map(|(q, y)| (q - y) * (q - y))
+        .sum::<f32>()
+        / b as f32;
+    let mean = out.iter().sum::<f32>() / b as f32;
+    w.d_q.clear();
+    w.d_q
+        .extend(out.iter().zip(target).map(|(q, y)| (q - y) / b as f32));
+    let d_input = d_input_cols.map(|cols| {
+        w.d_input.resize(b * cols.len(), 0.0);
+        InputGrad {
+            out: &mut w.d_input[..],
+            cols,
+            accumulate: false,
+        }
+    });
+    q.backward(
+        values,
+        Some(grads),
+        input,
+        b,
+        &w.tape,
+        &w.d_q,
+        d_input,
+        &mut w.scratch,
+    );
+    (loss, mean)
+}
+
+/// A frozen Q-network's gradient with respect to the given input columns (the action), from
+/// `w.d_q`, into `w.d_input`.
+fn action_grad(
+    q: &Mlp,
+    values: &[Vec<f32>],
+    input: &[f32],
+    b: usize,
+    cols: std::ops::Range<usize>,
+    w: &mut QWork,
+) {
+    w.d_input.resize(b * cols.len(), 0.0);
+    let d_input = InputGrad {
+        out: &mut w.d_input[..],
+        cols,
+        accumulate: false,
+    };
+    q.backward(
+        values,
+        None,
+        input,
+        b,
+        &w.tape,
+        &w.d_q,
+        Some(d_input),
+        &mut w.scratch,
+    );
+}
+
+/// `out = a + b`, elementwise.
+fn sum_pair(a: &[f32], b: &[f32], out: &mut Vec<f32>) {
+    out.clear();
+    out.extend(a.iter().zip(b).map(|(x, y)| x + y));
 }
 
 /// Squashed-Gaussian sample for every row: a = tanh(μ + σ·ε) and log π(a) with the tanh correction.
