@@ -5,6 +5,7 @@
 //! Episodes run in parallel across cores; within a worker, its episodes step in lockstep so the
 //! policy sees one batch per step instead of one call per env.
 
+pub mod seeds;
 pub mod stats;
 
 use rayon::prelude::*;
@@ -60,11 +61,17 @@ pub struct EvalOptions {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct EpisodeRecord {
     pub model: String,
+    /// The model this run is a seed of ([`seeds::group_of`] its label).
+    pub group: String,
+    /// The run's training seed (its checkpoint's).
+    pub train_seed: u64,
     pub encoder: EncoderKind,
     pub condition: Condition,
     pub episode: usize,
     pub seed: u64,
     pub success: bool,
+    /// Ended by termination (a fall, or reaching the goal) rather than the step limit.
+    pub terminated: bool,
     pub steps: usize,
     /// Steps taken when the goal was reached.
     pub steps_to_success: Option<usize>,
@@ -113,6 +120,8 @@ pub struct EvalReport {
     pub comparisons: Vec<Comparison>,
     /// Per encoder model: RF on success@500 against the baseline.
     pub recovery_fraction: BTreeMap<String, RecoveryFraction>,
+    /// Runs grouped by model: means over training seeds, paired tests, failure modes.
+    pub across_seeds: seeds::AcrossSeeds,
     /// Seconds spent per model.
     pub wall_time_s: BTreeMap<String, f64>,
     pub episodes: Vec<EpisodeRecord>,
@@ -155,6 +164,7 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         .build()
         .map_err(|e| EvalError::Options(format!("thread pool: {e}")))?;
     let mut labels = Vec::new();
+    let mut runs: Vec<(String, u64, PathBuf)> = Vec::new();
     let mut episodes = Vec::new();
     let mut wall_time_s = BTreeMap::new();
     for dir in &opts.checkpoints {
@@ -164,6 +174,19 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
             label.push('\'');
         }
         labels.push(label.clone());
+        let (group, train_seed) = (seeds::group_of(&label), policy.meta.seed);
+        if let Some((_, _, other)) = runs
+            .iter()
+            .find(|(g, s, _)| *g == group && *s == train_seed)
+        {
+            return Err(EvalError::Options(format!(
+                "{} and {} are both training seed {train_seed} of '{group}': a group needs one run \
+                 per seed to pair it with the baseline's",
+                other.display(),
+                dir.display()
+            )));
+        }
+        runs.push((group, train_seed, dir.clone()));
         let started = Instant::now();
         for &condition in &opts.conditions {
             let mut config = policy.meta.env.clone();
@@ -248,11 +271,14 @@ pub fn run_lockstep(
                 let damage = envs[i].damage();
                 records[i] = Some(EpisodeRecord {
                     model: label.to_string(),
+                    group: seeds::group_of(label),
+                    train_seed: policy.meta.seed,
                     encoder: net.encoder,
                     condition,
                     episode: first_episode + i,
                     seed: seeds[i],
                     success: out.success,
+                    terminated: out.terminated,
                     steps: out.step + 1,
                     steps_to_success: out.success.then_some(out.step + 1),
                     final_distance: out.distance,
@@ -372,6 +398,7 @@ fn summarize(
         }
     }
     EvalReport {
+        across_seeds: seeds::across_seeds(&episodes, &opts.conditions),
         episodes_per_cell: opts.episodes,
         max_steps: opts.max_steps,
         seeds,
@@ -475,6 +502,8 @@ impl EvalReport {
                 };
             }
         }
+        s += "\n";
+        s += &self.across_seeds.markdown();
         s
     }
 }
@@ -592,6 +621,7 @@ mod tests {
             }],
             recovery_fraction: BTreeMap::from([("encoder".to_string(), rf)]),
             wall_time_s: BTreeMap::new(),
+            across_seeds: seeds::across_seeds(&[], &[]),
             episodes: Vec::new(),
         }
     }

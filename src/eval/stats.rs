@@ -91,6 +91,11 @@ pub fn mcnemar(pairs: impl IntoIterator<Item = (bool, bool)>) -> McNemar {
             _ => {}
         }
     }
+    mcnemar_counts(b, c)
+}
+
+/// McNemar's test from its discordant counts.
+pub fn mcnemar_counts(b: usize, c: usize) -> McNemar {
     let n = b + c;
     if n == 0 {
         return McNemar {

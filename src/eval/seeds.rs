@@ -1,0 +1,788 @@
+//! Evaluation across training seeds: runs of one model (`encoder-lstm`, `encoder-lstm-s1`, …)
+//! form a group; a group's success is the mean over its seeds with a stratified bootstrap
+//! interval (rliable's protocol: resample seeds, then episodes within each), encoders are paired
+//! with the baseline run of the same training seed, and every episode is sorted into a failure
+//! mode.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Binomial, Distribution};
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+use super::stats::{McNemar, Rate, mcnemar_counts, recovery_fraction};
+use super::{EpisodeRecord, RecoveryFraction, SUCCESS_BUDGETS};
+use crate::damage::Condition;
+use crate::policy::EncoderKind;
+
+/// Bootstrap resamples per interval.
+pub const BOOTSTRAP_REPS: usize = 10_000;
+/// The bootstrap's RNG seed: the same episodes give the same intervals.
+pub const BOOTSTRAP_SEED: u64 = 0x5EED_B007;
+
+/// The model a run belongs to: its folder name without a trailing `-s<seed>`
+/// (`encoder-lstm-s2` → `encoder-lstm`; seed 0 lives in `encoder-lstm` itself).
+pub fn group_of(label: &str) -> String {
+    match label.rsplit_once("-s") {
+        Some((stem, seed))
+            if !stem.is_empty() && !seed.is_empty() && seed.bytes().all(|b| b.is_ascii_digit()) =>
+        {
+            stem.to_string()
+        }
+        _ => label.to_string(),
+    }
+}
+
+/// How an episode ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FailureMode {
+    Success,
+    /// Fell (or flipped) before any joint had triggered, or on the trigger's own step: damage
+    /// cannot have caused it.
+    TerminatedBeforeDamage,
+    /// Fell with at least one step taken under damage.
+    TerminatedAfterDamage,
+    /// Neither reached the goal nor fell within the step limit.
+    TimedOut,
+}
+
+impl EpisodeRecord {
+    /// The step of the episode's first trigger, on any joint.
+    pub fn first_trigger(&self) -> Option<usize> {
+        self.trigger_steps.iter().flatten().min().copied()
+    }
+
+    pub fn failure_mode(&self) -> FailureMode {
+        if self.success {
+            FailureMode::Success
+        } else if !self.terminated {
+            FailureMode::TimedOut
+        } else if self.first_trigger().is_some_and(|t| t + 1 < self.steps) {
+            FailureMode::TerminatedAfterDamage
+        } else {
+            FailureMode::TerminatedBeforeDamage
+        }
+    }
+
+    /// A joint triggered and the episode went on past that step (the episodes where adapting to
+    /// damage can matter at all).
+    pub fn reached_damage(&self) -> bool {
+        self.first_trigger()
+            .is_some_and(|t| t + 1 < self.steps || (t < self.steps && !self.terminated))
+    }
+}
+
+/// Episodes per failure mode.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct FailureCounts {
+    pub success: usize,
+    pub terminated_before_damage: usize,
+    pub terminated_after_damage: usize,
+    pub timed_out: usize,
+}
+
+impl FailureCounts {
+    pub fn of<'a>(episodes: impl IntoIterator<Item = &'a EpisodeRecord>) -> Self {
+        let mut c = Self::default();
+        for e in episodes {
+            match e.failure_mode() {
+                FailureMode::Success => c.success += 1,
+                FailureMode::TerminatedBeforeDamage => c.terminated_before_damage += 1,
+                FailureMode::TerminatedAfterDamage => c.terminated_after_damage += 1,
+                FailureMode::TimedOut => c.timed_out += 1,
+            }
+        }
+        c
+    }
+
+    pub fn total(&self) -> usize {
+        self.success + self.terminated_before_damage + self.terminated_after_damage + self.timed_out
+    }
+}
+
+/// A mean over seeds with its 95 % bootstrap interval.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Interval {
+    pub mean: f64,
+    pub low: f64,
+    pub high: f64,
+}
+
+/// The bootstrap distribution of the mean success rate over seeds: each resample draws as many
+/// seeds as there are, with replacement, then each drawn seed's episodes with replacement (a
+/// binomial draw at that seed's rate is exactly that), and averages the drawn seeds' rates.
+/// `seeds` holds (successes, episodes) per seed.
+pub fn bootstrap_means(seeds: &[(usize, usize)], reps: usize, rng_seed: u64) -> Vec<f64> {
+    let mut rng = ChaCha8Rng::seed_from_u64(rng_seed);
+    let usable: Vec<(usize, usize)> = seeds.iter().copied().filter(|&(_, n)| n > 0).collect();
+    if usable.is_empty() {
+        return Vec::new();
+    }
+    let binomials: Vec<Option<Binomial>> = usable
+        .iter()
+        .map(|&(k, n)| Binomial::new(n as u64, k as f64 / n as f64).ok())
+        .collect();
+    (0..reps)
+        .map(|_| {
+            let mut sum = 0.0;
+            for _ in 0..usable.len() {
+                let s = rng.random_range(0..usable.len());
+                let (k, n) = usable[s];
+                let drawn = match &binomials[s] {
+                    Some(b) => b.sample(&mut rng),
+                    None => k as u64,
+                };
+                sum += drawn as f64 / n as f64;
+            }
+            sum / usable.len() as f64
+        })
+        .collect()
+}
+
+/// Mean over seeds of each seed's rate, with the 2.5 and 97.5 percentiles of
+/// [`bootstrap_means`].
+pub fn stratified_bootstrap(seeds: &[(usize, usize)], reps: usize, rng_seed: u64) -> Interval {
+    let rates: Vec<f64> = seeds
+        .iter()
+        .filter(|&&(_, n)| n > 0)
+        .map(|&(k, n)| k as f64 / n as f64)
+        .collect();
+    let mut draws = bootstrap_means(seeds, reps, rng_seed);
+    if draws.is_empty() {
+        return Interval {
+            mean: f64::NAN,
+            low: f64::NAN,
+            high: f64::NAN,
+        };
+    }
+    draws.sort_by(f64::total_cmp);
+    Interval {
+        mean: rates.iter().sum::<f64>() / rates.len() as f64,
+        low: quantile(&draws, 0.025),
+        high: quantile(&draws, 0.975),
+    }
+}
+
+/// Linear-interpolated quantile of sorted values (type 7, numpy's default).
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    let pos = q * (sorted.len() - 1) as f64;
+    let (i, frac) = (pos.floor() as usize, pos - pos.floor());
+    match sorted.get(i + 1) {
+        Some(next) => sorted[i] + frac * (next - sorted[i]),
+        None => sorted[i],
+    }
+}
+
+/// Seed-level paired test: flips the sign of every seed's difference (encoder − baseline rate)
+/// in all 2^S ways; p is the share of flips whose |sum| is at least the observed one. With three
+/// seeds its smallest possible value is 0.25: three seeds cannot be significant at seed level.
+pub fn seed_sign_flip_p(differences: &[f64]) -> f64 {
+    let s = differences.len();
+    if s == 0 || s > 20 {
+        return f64::NAN;
+    }
+    let observed = differences.iter().sum::<f64>().abs();
+    let as_large = (0u32..1 << s)
+        .filter(|mask| {
+            let sum: f64 = differences
+                .iter()
+                .enumerate()
+                .map(|(i, d)| if mask >> i & 1 == 1 { -d } else { *d })
+                .sum();
+            sum.abs() >= observed - 1e-12
+        })
+        .count();
+    as_large as f64 / (1u64 << s) as f64
+}
+
+/// Pooled paired test over seeds: the Cochran–Mantel–Haenszel test with each pair as a stratum,
+/// which is McNemar's test on the discordant pairs summed over seeds (continuity-corrected χ²
+/// and the exact sign test: the paired permutation test of the pooled difference).
+pub fn pooled_mcnemar(per_seed: &[McNemar]) -> McNemar {
+    mcnemar_counts(
+        per_seed.iter().map(|m| m.b).sum(),
+        per_seed.iter().map(|m| m.c).sum(),
+    )
+}
+
+/// One run (training seed) of a group under one condition.
+#[derive(Debug, Clone, Serialize)]
+pub struct SeedCell {
+    pub model: String,
+    pub train_seed: u64,
+    pub success: BTreeMap<usize, Rate>,
+    pub failure_modes: FailureCounts,
+    /// Success@500 among the episodes that reached their first trigger.
+    pub success_after_damage: Rate,
+}
+
+/// A group (every seed of one model) under one condition.
+#[derive(Debug, Clone, Serialize)]
+pub struct GroupCell {
+    pub group: String,
+    pub encoder: EncoderKind,
+    pub condition: Condition,
+    pub runs: Vec<SeedCell>,
+    /// Mean over seeds of success within each budget, with its stratified bootstrap interval.
+    pub success: BTreeMap<usize, Interval>,
+    /// Summed over seeds.
+    pub failure_modes: FailureCounts,
+    /// Mean over seeds (the seeds where any episode reached damage), with its interval.
+    pub success_after_damage: Interval,
+}
+
+/// An encoder group against the baseline group under one condition, on success@500, each
+/// encoder run paired with the baseline run of its training seed on the same eval seeds.
+#[derive(Debug, Clone, Serialize)]
+pub struct GroupComparison {
+    pub baseline: String,
+    pub encoder: String,
+    pub condition: Condition,
+    /// (training seed, McNemar: b = baseline only, c = encoder only).
+    pub per_seed: Vec<(u64, McNemar)>,
+    pub pooled: McNemar,
+    /// Mean over paired seeds of (encoder − baseline) success rate.
+    pub mean_difference: f64,
+    pub seed_sign_flip_p: f64,
+}
+
+/// An encoder group's recovery fraction, per training seed and from the group means.
+#[derive(Debug, Clone, Serialize)]
+pub struct GroupRecovery {
+    pub encoder: String,
+    pub per_seed: Vec<(u64, RecoveryFraction)>,
+    pub of_means: RecoveryFraction,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct AcrossSeeds {
+    pub bootstrap_reps: usize,
+    pub bootstrap_seed: u64,
+    pub groups: Vec<GroupCell>,
+    pub comparisons: Vec<GroupComparison>,
+    pub recovery: Vec<GroupRecovery>,
+}
+
+/// Groups the episodes by model and compares each encoder group with the baseline group.
+pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> AcrossSeeds {
+    // Groups and their runs in the order they were evaluated; runs sorted by training seed.
+    let mut groups: Vec<(String, EncoderKind, Vec<(u64, String)>)> = Vec::new();
+    for e in episodes {
+        let g = match groups.iter_mut().find(|(g, _, _)| *g == e.group) {
+            Some(g) => g,
+            None => {
+                groups.push((e.group.clone(), e.encoder, Vec::new()));
+                groups.last_mut().expect("just pushed")
+            }
+        };
+        if !g.2.iter().any(|(_, m)| *m == e.model) {
+            g.2.push((e.train_seed, e.model.clone()));
+        }
+    }
+    for g in &mut groups {
+        g.2.sort();
+    }
+    let run_episodes = |model: &str, condition: Condition| -> Vec<&EpisodeRecord> {
+        let mut v: Vec<&EpisodeRecord> = episodes
+            .iter()
+            .filter(|e| e.model == model && e.condition == condition)
+            .collect();
+        v.sort_by_key(|e| e.seed);
+        v
+    };
+    let success_rate = |eps: &[&EpisodeRecord], budget: usize| {
+        Rate::new(
+            eps.iter().filter(|e| e.success_within(budget)).count(),
+            eps.len(),
+        )
+    };
+    let after_damage = |eps: &[&EpisodeRecord]| {
+        let reached: Vec<&&EpisodeRecord> = eps.iter().filter(|e| e.reached_damage()).collect();
+        Rate::new(reached.iter().filter(|e| e.success).count(), reached.len())
+    };
+
+    let mut cells = Vec::new();
+    for (group, encoder, runs) in &groups {
+        for &condition in conditions {
+            let mut seed_cells = Vec::new();
+            for (train_seed, model) in runs {
+                let eps = run_episodes(model, condition);
+                seed_cells.push(SeedCell {
+                    model: model.clone(),
+                    train_seed: *train_seed,
+                    success: SUCCESS_BUDGETS
+                        .iter()
+                        .map(|&b| (b, success_rate(&eps, b)))
+                        .collect(),
+                    failure_modes: FailureCounts::of(eps.iter().copied()),
+                    success_after_damage: after_damage(&eps),
+                });
+            }
+            let counts = |pick: &dyn Fn(&SeedCell) -> Rate| -> Vec<(usize, usize)> {
+                seed_cells
+                    .iter()
+                    .map(|c| {
+                        let r = pick(c);
+                        (r.successes, r.n)
+                    })
+                    .collect()
+            };
+            let success = SUCCESS_BUDGETS
+                .iter()
+                .map(|&b| {
+                    let interval = stratified_bootstrap(
+                        &counts(&|c| c.success[&b]),
+                        BOOTSTRAP_REPS,
+                        BOOTSTRAP_SEED,
+                    );
+                    (b, interval)
+                })
+                .collect();
+            let mut failure_modes = FailureCounts::default();
+            for c in &seed_cells {
+                let f = c.failure_modes;
+                failure_modes.success += f.success;
+                failure_modes.terminated_before_damage += f.terminated_before_damage;
+                failure_modes.terminated_after_damage += f.terminated_after_damage;
+                failure_modes.timed_out += f.timed_out;
+            }
+            cells.push(GroupCell {
+                group: group.clone(),
+                encoder: *encoder,
+                condition,
+                success_after_damage: stratified_bootstrap(
+                    &counts(&|c| c.success_after_damage),
+                    BOOTSTRAP_REPS,
+                    BOOTSTRAP_SEED,
+                ),
+                runs: seed_cells,
+                success,
+                failure_modes,
+            });
+        }
+    }
+
+    let mut comparisons = Vec::new();
+    let mut recovery = Vec::new();
+    let baseline = groups.iter().find(|(_, k, _)| *k == EncoderKind::None);
+    if let Some((base, _, base_runs)) = baseline {
+        let cell = |g: &str, c: Condition| cells.iter().find(|x| x.group == g && x.condition == c);
+        for (group, _, runs) in groups.iter().filter(|(_, k, _)| *k != EncoderKind::None) {
+            let paired: Vec<(u64, &String, &String)> = runs
+                .iter()
+                .filter_map(|(seed, model)| {
+                    base_runs
+                        .iter()
+                        .find(|(s, _)| s == seed)
+                        .map(|(_, b)| (*seed, b, model))
+                })
+                .collect();
+            for &condition in conditions {
+                let mut per_seed = Vec::new();
+                let mut differences = Vec::new();
+                for &(seed, base_model, enc_model) in &paired {
+                    let (b, e) = (
+                        run_episodes(base_model, condition),
+                        run_episodes(enc_model, condition),
+                    );
+                    let pairs: Vec<(bool, bool)> = b
+                        .iter()
+                        .zip(&e)
+                        .filter(|(x, y)| x.seed == y.seed)
+                        .map(|(x, y)| (x.success_within(500), y.success_within(500)))
+                        .collect();
+                    let n = pairs.len().max(1) as f64;
+                    let diff = pairs.iter().map(|&(x, y)| y as i32 - x as i32).sum::<i32>();
+                    differences.push(f64::from(diff) / n);
+                    per_seed.push((seed, super::stats::mcnemar(pairs)));
+                }
+                let tables: Vec<McNemar> = per_seed.iter().map(|(_, m)| *m).collect();
+                comparisons.push(GroupComparison {
+                    baseline: base.clone(),
+                    encoder: group.clone(),
+                    condition,
+                    pooled: pooled_mcnemar(&tables),
+                    mean_difference: if differences.is_empty() {
+                        f64::NAN
+                    } else {
+                        differences.iter().sum::<f64>() / differences.len() as f64
+                    },
+                    seed_sign_flip_p: seed_sign_flip_p(&differences),
+                    per_seed,
+                });
+            }
+            let rate = |model: &str, c: Condition| {
+                let eps = run_episodes(model, c);
+                (!eps.is_empty()).then(|| success_rate(&eps, 500).rate)
+            };
+            let rf = |es: f64, bs: f64, bh: f64| RecoveryFraction {
+                encoder_severe: es,
+                baseline_severe: bs,
+                baseline_healthy: bh,
+                value: recovery_fraction(es, bs, bh),
+            };
+            let per_seed: Vec<(u64, RecoveryFraction)> = paired
+                .iter()
+                .filter_map(|&(seed, base_model, enc_model)| {
+                    Some((
+                        seed,
+                        rf(
+                            rate(enc_model, Condition::Severe)?,
+                            rate(base_model, Condition::Severe)?,
+                            rate(base_model, Condition::Healthy)?,
+                        ),
+                    ))
+                })
+                .collect();
+            let mean_of = |g: &str, c: Condition| cell(g, c).map(|x| x.success[&500].mean);
+            if let (Some(es), Some(bs), Some(bh)) = (
+                mean_of(group, Condition::Severe),
+                mean_of(base, Condition::Severe),
+                mean_of(base, Condition::Healthy),
+            ) {
+                recovery.push(GroupRecovery {
+                    encoder: group.clone(),
+                    per_seed,
+                    of_means: rf(es, bs, bh),
+                });
+            }
+        }
+    }
+    AcrossSeeds {
+        bootstrap_reps: BOOTSTRAP_REPS,
+        bootstrap_seed: BOOTSTRAP_SEED,
+        groups: cells,
+        comparisons,
+        recovery,
+    }
+}
+
+impl AcrossSeeds {
+    /// The tables of the evaluation across seeds, as Markdown.
+    pub fn markdown(&self) -> String {
+        let pct = |r: f64| format!("{:.0} %", 100.0 * r);
+        let interval = |i: &Interval| {
+            format!(
+                "{:.0} % [{:.0}, {:.0}]",
+                100.0 * i.mean,
+                100.0 * i.low,
+                100.0 * i.high
+            )
+        };
+        let mut s = format!(
+            "**Across training seeds** (success: each seed, then the mean over seeds with its 95 % \
+             stratified bootstrap interval: seeds, then episodes within each, {} resamples)\n\n\
+             | model | condition | seeds | success@500 per seed | success@500 | success@350 | success@250 |\n\
+             |---|---|---|---|---:|---:|---:|\n",
+            self.bootstrap_reps
+        );
+        for g in &self.groups {
+            let seeds: Vec<String> = g.runs.iter().map(|r| r.train_seed.to_string()).collect();
+            let per_seed: Vec<String> = g.runs.iter().map(|r| pct(r.success[&500].rate)).collect();
+            s += &format!(
+                "| {} | {} | {} | {} | {} | {} | {} |\n",
+                g.group,
+                g.condition,
+                seeds.join(", "),
+                per_seed.join(", "),
+                interval(&g.success[&500]),
+                interval(&g.success[&350]),
+                interval(&g.success[&250]),
+            );
+        }
+        s += "\n**Failure modes** (episodes summed over seeds; a fall counts as after damage once a \
+              step was taken with a joint triggered) and **success among the episodes that reached \
+              their first trigger**, the only ones where adapting to damage can matter (mean over \
+              seeds [95 % bootstrap], episodes)\n\n\
+              | model | condition | success | fell before damage | fell after damage | timed out | \
+              success once damaged |\n|---|---|---:|---:|---:|---:|---:|\n";
+        for g in &self.groups {
+            let f = g.failure_modes;
+            let n = f.total().max(1) as f64;
+            let share = |k: usize| format!("{k} ({:.0} %)", 100.0 * k as f64 / n);
+            let reached: usize = g.runs.iter().map(|r| r.success_after_damage.n).sum();
+            let after = if reached == 0 {
+                "– (no episode reached a trigger)".to_string()
+            } else {
+                format!("{} (n = {reached})", interval(&g.success_after_damage))
+            };
+            s += &format!(
+                "| {} | {} | {} | {} | {} | {} | {after} |\n",
+                g.group,
+                g.condition,
+                share(f.success),
+                share(f.terminated_before_damage),
+                share(f.terminated_after_damage),
+                share(f.timed_out),
+            );
+        }
+        if !self.comparisons.is_empty() {
+            s += "\n**Encoder vs baseline, paired by training seed** (success@500 on the same eval \
+                  seeds; b = baseline only, c = encoder only; pooled: Cochran–Mantel–Haenszel with \
+                  pairs as strata, i.e. McNemar on the summed discordant pairs, and its exact sign \
+                  test; seed sign-flip: the paired permutation test over seeds' mean differences, \
+                  whose floor with three seeds is 0.25)\n\n\
+                  | encoder | condition | per seed b/c (exact p) | pooled b/c | χ² | p (χ²) | p (exact) \
+                  | mean Δ | seed sign-flip p |\n|---|---|---|---:|---:|---:|---:|---:|---:|\n";
+            for c in &self.comparisons {
+                let per_seed: Vec<String> = c
+                    .per_seed
+                    .iter()
+                    .map(|(seed, m)| format!("s{seed}: {}/{} ({:.3})", m.b, m.c, m.p_exact))
+                    .collect();
+                let p = c.pooled;
+                s += &format!(
+                    "| {} | {} | {} | {}/{} | {:.2} | {:.3} | {:.3} | {:+.1} pt | {:.2} |\n",
+                    c.encoder,
+                    c.condition,
+                    per_seed.join("; "),
+                    p.b,
+                    p.c,
+                    p.chi2,
+                    p.p_chi2,
+                    p.p_exact,
+                    100.0 * c.mean_difference,
+                    c.seed_sign_flip_p,
+                );
+            }
+        }
+        for r in &self.recovery {
+            let show = |rf: &RecoveryFraction| match rf.value {
+                Some(v) => format!(
+                    "{v:.2} = ({} − {}) / ({} − {})",
+                    pct(rf.encoder_severe),
+                    pct(rf.baseline_severe),
+                    pct(rf.baseline_healthy),
+                    pct(rf.baseline_severe)
+                ),
+                None => format!(
+                    "undefined: the baseline loses nothing (healthy {}, severe {})",
+                    pct(rf.baseline_healthy),
+                    pct(rf.baseline_severe)
+                ),
+            };
+            s += &format!(
+                "\nRecovery fraction of {} = (encoder severe − baseline severe) / (baseline healthy \
+                 − baseline severe), success@500: of the means over seeds {}",
+                r.encoder,
+                show(&r.of_means)
+            );
+            for (seed, rf) in &r.per_seed {
+                s += &format!("; seed {seed}: {}", show(rf));
+            }
+            s += "\n";
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::damage::N_ACTUATORS;
+
+    #[test]
+    fn runs_group_by_their_name_without_the_seed() {
+        assert_eq!(group_of("encoder-lstm-s2"), "encoder-lstm");
+        assert_eq!(group_of("encoder-lstm"), "encoder-lstm");
+        assert_eq!(group_of("baseline-s10"), "baseline");
+        // Not a seed suffix: kept whole.
+        assert_eq!(group_of("walker-strong"), "walker-strong");
+        assert_eq!(group_of("-s1"), "-s1");
+        assert_eq!(group_of("run-s"), "run-s");
+    }
+
+    /// Two seeds, one always succeeds and one never: episode resampling changes nothing, so the
+    /// mean of a resample is 0, ½ or 1 with probabilities ¼, ½, ¼ and the 95 % interval is [0, 1].
+    #[test]
+    fn bootstrap_of_two_opposite_seeds_is_hand_checkable() {
+        let seeds = [(50, 50), (0, 50)];
+        let draws = bootstrap_means(&seeds, 20_000, 3);
+        let share = |v: f64| draws.iter().filter(|&&d| d == v).count() as f64 / draws.len() as f64;
+        assert!((share(0.5) - 0.5).abs() < 0.02, "{}", share(0.5));
+        assert!((share(0.0) - 0.25).abs() < 0.02 && (share(1.0) - 0.25).abs() < 0.02);
+        assert_eq!(share(0.0) + share(0.5) + share(1.0), 1.0);
+        let i = stratified_bootstrap(&seeds, 20_000, 3);
+        assert_eq!((i.mean, i.low, i.high), (0.5, 0.0, 1.0));
+        // One seed that always succeeds: no uncertainty left to resample.
+        let i = stratified_bootstrap(&[(40, 40)], 1_000, 3);
+        assert_eq!((i.mean, i.low, i.high), (1.0, 1.0, 1.0));
+    }
+
+    /// One seed at 50/100: the episode bootstrap of a proportion has SD √(p(1 − p)/n) = 0.05,
+    /// so the interval is ≈ 0.5 ± 1.96 · 0.05.
+    #[test]
+    fn bootstrap_of_one_seed_matches_the_binomial_spread() {
+        let i = stratified_bootstrap(&[(50, 100)], 20_000, 11);
+        assert!(
+            (i.low - 0.402).abs() < 0.015 && (i.high - 0.598).abs() < 0.015,
+            "{i:?}"
+        );
+    }
+
+    #[test]
+    fn bootstrap_is_deterministic_under_its_seed() {
+        let seeds = [(30, 50), (41, 50), (12, 50)];
+        assert_eq!(
+            bootstrap_means(&seeds, 500, 7),
+            bootstrap_means(&seeds, 500, 7)
+        );
+        assert_ne!(
+            bootstrap_means(&seeds, 500, 7),
+            bootstrap_means(&seeds, 500, 8)
+        );
+    }
+
+    /// Seeds with (b, c) = (1, 4), (2, 3), (0, 3): pooled b = 3, c = 10. χ² = (|10 − 3| − 1)²/13
+    /// = 36/13 = 2.7692, p = erfc(√(2.7692/2)) = 0.0961; exact p = 2·P(Bin(13, ½) ≤ 3) =
+    /// 2·(1 + 13 + 78 + 286)/8192 = 756/8192 = 0.09229.
+    #[test]
+    fn pooled_paired_test_matches_hand_computation() {
+        let tables = [(1, 4), (2, 3), (0, 3)].map(|(b, c)| mcnemar_counts(b, c));
+        let p = pooled_mcnemar(&tables);
+        assert_eq!((p.b, p.c), (3, 10));
+        assert!((p.chi2 - 36.0 / 13.0).abs() < 1e-12, "{}", p.chi2);
+        assert!((p.p_chi2 - 0.0961).abs() < 1e-4, "{}", p.p_chi2);
+        assert!((p.p_exact - 756.0 / 8192.0).abs() < 1e-12, "{}", p.p_exact);
+    }
+
+    /// Differences 0.1, 0.2, 0.3: of the 8 sign patterns only all-plus and all-minus reach
+    /// |sum| = 0.6, so p = 2/8; with one negative seed (0.1, 0.2, −0.3, sum 0), every pattern
+    /// reaches it.
+    #[test]
+    fn seed_sign_flip_enumerates_every_pattern() {
+        assert_eq!(seed_sign_flip_p(&[0.1, 0.2, 0.3]), 0.25);
+        assert_eq!(seed_sign_flip_p(&[0.1, 0.2, -0.3]), 1.0);
+        // 0.1, 0.2, 0.4: |sums| 0.7, 0.5, 0.3, 0.1 twice each; ≥ 0.7 only the two extremes.
+        assert_eq!(seed_sign_flip_p(&[0.1, 0.2, 0.4]), 0.25);
+        assert_eq!(seed_sign_flip_p(&[0.5]), 1.0);
+    }
+
+    fn episode(
+        success: bool,
+        terminated: bool,
+        steps: usize,
+        first_trigger: Option<usize>,
+    ) -> EpisodeRecord {
+        let mut trigger_steps = [None; N_ACTUATORS];
+        trigger_steps[3] = first_trigger;
+        // A later trigger on another joint must not move the first one.
+        trigger_steps[5] = first_trigger.map(|t| t + 40);
+        EpisodeRecord {
+            model: "m".into(),
+            group: "m".into(),
+            train_seed: 0,
+            encoder: EncoderKind::Lstm,
+            condition: Condition::Severe,
+            episode: 0,
+            seed: 0,
+            success,
+            terminated,
+            steps,
+            steps_to_success: success.then_some(steps),
+            final_distance: 0.0,
+            episode_return: 0.0,
+            triggered_joints: first_trigger.map_or(0, |_| 2),
+            trigger_steps,
+        }
+    }
+
+    #[test]
+    fn failure_modes_of_constructed_episodes() {
+        use FailureMode::*;
+        let cases = [
+            // (success, terminated, steps, first trigger) → mode, reached damage
+            ((true, true, 180, Some(60)), Success, true),
+            ((true, true, 180, None), Success, false),
+            // Fell at step index 49 with no trigger, or with one only later than its end.
+            ((false, true, 50, None), TerminatedBeforeDamage, false),
+            ((false, true, 50, Some(120)), TerminatedBeforeDamage, false),
+            // Triggered on the very step it fell: no step was taken under damage.
+            ((false, true, 50, Some(49)), TerminatedBeforeDamage, false),
+            ((false, true, 50, Some(48)), TerminatedAfterDamage, true),
+            ((false, true, 300, Some(10)), TerminatedAfterDamage, true),
+            ((false, false, 500, Some(10)), TimedOut, true),
+            ((false, false, 500, Some(499)), TimedOut, true),
+            ((false, false, 500, None), TimedOut, false),
+        ];
+        for ((success, terminated, steps, trigger), mode, reached) in cases {
+            let e = episode(success, terminated, steps, trigger);
+            assert_eq!(
+                e.failure_mode(),
+                mode,
+                "{success} {terminated} {steps} {trigger:?}"
+            );
+            assert_eq!(
+                e.reached_damage(),
+                reached,
+                "{success} {terminated} {steps} {trigger:?}"
+            );
+        }
+        let eps: Vec<EpisodeRecord> = cases
+            .iter()
+            .map(|&((s, t, n, f), _, _)| episode(s, t, n, f))
+            .collect();
+        let c = FailureCounts::of(&eps);
+        assert_eq!(
+            (
+                c.success,
+                c.terminated_before_damage,
+                c.terminated_after_damage,
+                c.timed_out
+            ),
+            (2, 3, 2, 3)
+        );
+        assert_eq!(c.total(), eps.len());
+    }
+
+    /// Encoder runs pair with the baseline run of their own training seed, whatever order the
+    /// runs were given in, and episodes pair on eval seeds.
+    #[test]
+    fn encoder_seeds_pair_with_the_baseline_of_the_same_seed() {
+        let run = |model: &str, encoder: EncoderKind, train_seed: u64, wins: &[bool]| {
+            wins.iter()
+                .enumerate()
+                .map(|(i, &w)| {
+                    let mut e = episode(w, true, if w { 200 } else { 40 }, None);
+                    (e.model, e.group, e.encoder) = (model.into(), group_of(model), encoder);
+                    (e.train_seed, e.seed, e.episode) = (train_seed, 100 + i as u64, i);
+                    e
+                })
+                .collect::<Vec<_>>()
+        };
+        let (t, f) = (true, false);
+        let episodes: Vec<EpisodeRecord> = [
+            run("enc-s1", EncoderKind::Lstm, 1, &[t, t, t, f]),
+            run("baseline", EncoderKind::None, 0, &[t, f, f, f]),
+            run("enc", EncoderKind::Lstm, 0, &[t, t, f, f]),
+            run("baseline-s1", EncoderKind::None, 1, &[f, f, t, t]),
+        ]
+        .concat();
+        let report = across_seeds(&episodes, &[Condition::Severe]);
+        let cmp = &report.comparisons[0];
+        assert_eq!(
+            (cmp.baseline.as_str(), cmp.encoder.as_str()),
+            ("baseline", "enc")
+        );
+        // Seed 0: baseline T F F F vs enc T T F F → b = 0, c = 1. Seed 1: F F T T vs T T T F →
+        // b = 1, c = 2. Pooled 1/3; mean Δ = (¼ + ¼)/2.
+        let counts: Vec<(u64, usize, usize)> =
+            cmp.per_seed.iter().map(|(s, m)| (*s, m.b, m.c)).collect();
+        assert_eq!(counts, [(0, 0, 1), (1, 1, 2)]);
+        assert_eq!((cmp.pooled.b, cmp.pooled.c), (1, 3));
+        assert!((cmp.mean_difference - 0.25).abs() < 1e-12);
+        // The group mean is the mean of the seeds' rates: enc (½ + ¾)/2, baseline (¼ + ½)/2.
+        let mean = |g: &str| {
+            report
+                .groups
+                .iter()
+                .find(|c| c.group == g)
+                .map(|c| c.success[&500].mean)
+        };
+        assert_eq!(mean("enc"), Some(0.625));
+        assert_eq!(mean("baseline"), Some(0.375));
+        let seeds: Vec<u64> = report.groups[0].runs.iter().map(|r| r.train_seed).collect();
+        assert_eq!(seeds, [0, 1]);
+    }
+}
