@@ -267,15 +267,22 @@ struct EvalArgs {
 
 #[derive(Args)]
 struct ProbeArgs {
-    /// Encoder checkpoint whose z is probed (probe.json is written into it).
-    #[arg(long, value_name = "DIR")]
-    checkpoint: PathBuf,
+    /// Encoder checkpoints whose z is probed (probe.json is written into each); seeds of one
+    /// model (`encoder-lstm`, `encoder-lstm-s1`, …) are also summarised together.
+    #[arg(long = "checkpoint", value_name = "DIR", required = true, num_args = 1..)]
+    checkpoints: Vec<PathBuf>,
     /// Baseline checkpoint, for the progress-at-onset comparison.
     #[arg(long, value_name = "DIR")]
     baseline: Option<PathBuf>,
-    /// Episodes per condition (≈ 6,000 steps in all with the default).
-    #[arg(long, default_value_t = 12)]
+    /// Episodes per condition.
+    #[arg(long, default_value_t = 50)]
     episodes: usize,
+    /// Cross-validation folds (grouped by episode).
+    #[arg(long, default_value_t = 5)]
+    folds: usize,
+    /// Keep the raw window for the window probe on every this-many-th step.
+    #[arg(long, default_value_t = 4)]
+    window_every: usize,
     #[arg(long, default_value_t = 500)]
     max_steps: usize,
     #[arg(long, default_value_t = 2_000_000_000)]
@@ -838,14 +845,24 @@ fn error_chain(err: &anyhow::Error) -> String {
 
 fn probe_command(args: ProbeArgs) -> Result<()> {
     use gaitscope::probe;
-    if args.episodes == 0 || args.max_steps == 0 {
-        bail!("--episodes and --max-steps must be at least 1");
+    if args.episodes == 0 || args.max_steps == 0 || args.window_every == 0 {
+        bail!("--episodes, --max-steps and --window-every must be at least 1");
     }
-    let policy = gaitscope::policy::Policy::load(&args.checkpoint, None)?;
-    if !policy.net().encoder.uses_window() {
-        return Err(probe::ProbeError::NoLatent(args.checkpoint).into());
+    if args.folds < 2 || args.folds > args.episodes * Condition::ALL.len() {
+        bail!(
+            "--folds must be between 2 and the number of episodes ({})",
+            args.episodes * Condition::ALL.len()
+        );
     }
-    let steps = probe::collect(&policy, args.episodes, args.max_steps, args.seed)?;
+    // Load everything first: a bad checkpoint fails before minutes of rollouts.
+    let mut policies = Vec::new();
+    for dir in &args.checkpoints {
+        let policy = gaitscope::policy::Policy::load(dir, None)?;
+        if !policy.net().encoder.uses_window() {
+            return Err(probe::ProbeError::NoLatent(dir.clone()).into());
+        }
+        policies.push(policy);
+    }
     let baseline = match &args.baseline {
         Some(dir) => {
             let base = gaitscope::policy::Policy::load(dir, Some(EncoderKind::None))?;
@@ -854,19 +871,60 @@ fn probe_command(args: ProbeArgs) -> Result<()> {
                 args.episodes,
                 args.max_steps,
                 args.seed,
+                0,
             )?)
         }
         None => None,
     };
-    let joint_names: Vec<String> = AntEnv::new(policy.meta.env.clone(), 0)?
-        .actuators()
-        .iter()
-        .map(|a| a.joint.clone())
-        .collect();
-    let file = probe::fit_probes(&steps, &joint_names, policy.meta.steps_done, args.seed)?;
-    println!("{}", file.markdown());
-    eprintln!("wrote {}", probe::save(&file, &args.checkpoint)?.display());
-    for path in probe::figures(&file, &steps, baseline.as_deref(), &args.out)? {
+    let mut report = probe::ProbeReport { runs: Vec::new() };
+    for (dir, policy) in args.checkpoints.iter().zip(&policies) {
+        let label = gaitscope::eval::model_label(dir);
+        let steps = probe::collect(
+            policy,
+            args.episodes,
+            args.max_steps,
+            args.seed,
+            args.window_every,
+        )?;
+        let joint_names: Vec<String> = AntEnv::new(policy.meta.env.clone(), 0)?
+            .actuators()
+            .iter()
+            .map(|a| a.joint.clone())
+            .collect();
+        let file = probe::fit_probes(&steps, &joint_names, policy.meta.steps_done, args.seed)?;
+        eprintln!("wrote {}", probe::save(&file, dir)?.display());
+        let figures_dir = if args.checkpoints.len() > 1 {
+            args.out.join(&label)
+        } else {
+            args.out.clone()
+        };
+        for path in probe::figures(&file, &steps, baseline.as_deref(), &figures_dir)? {
+            eprintln!("wrote {}", path.display());
+        }
+        let cv = probe::probe_cv(
+            &label,
+            &steps,
+            &joint_names,
+            args.window_every,
+            args.folds,
+            args.seed,
+        )?;
+        eprintln!(
+            "{label}: {} episodes, {} steps cross-validated",
+            cv.episodes, cv.steps
+        );
+        report.runs.push(cv);
+    }
+    let markdown = report.markdown();
+    println!("{markdown}");
+    let json = serde_json::to_vec_pretty(&report)?;
+    let json_path = args.out.join("probe-cv.json");
+    gaitscope::policy::checkpoint::write_atomic(&json_path, &json)?;
+    let md_path = args.out.join("probe-cv.md");
+    gaitscope::policy::checkpoint::write_atomic(&md_path, markdown.as_bytes())?;
+    let latency_path = args.out.join("probe_latency.png");
+    report.latency_figure(&latency_path)?;
+    for path in [json_path, md_path, latency_path] {
         eprintln!("wrote {}", path.display());
     }
     Ok(())

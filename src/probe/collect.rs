@@ -24,15 +24,20 @@ pub struct ProbeStep {
     pub joint_triggers: [Option<usize>; N_ACTUATORS],
     /// Decrease in goal distance this step (m).
     pub progress: f64,
+    /// The context window the policy read at this step (T × (obs, action), flattened), on the
+    /// steps `collect` was asked to keep it for; empty elsewhere.
+    pub window: Vec<f32>,
 }
 
 /// Runs `episodes_per_condition` episodes under each condition (deterministic actions) and
-/// records every step. Episodes get seeds `seed, seed + 1, …`, conditions interleaved.
+/// records every step. Episodes get seeds `seed, seed + 1, …`, conditions interleaved. The
+/// window (592 numbers for the Ant) is kept on every `window_every`-th step (0: never).
 pub fn collect(
     policy: &Policy,
     episodes_per_condition: usize,
     max_steps: usize,
     seed: u64,
+    window_every: usize,
 ) -> Result<Vec<ProbeStep>, ProbeError> {
     let net = policy.net().clone();
     let mut steps = Vec::new();
@@ -63,6 +68,11 @@ pub fn collect(
                     first_trigger: damage.first_trigger_steps().iter().flatten().min().copied(),
                     joint_triggers: damage.first_trigger_steps(),
                     progress: out.reward.progress,
+                    window: if window_every > 0 && out.step % window_every == 0 {
+                        window.as_slice().to_vec()
+                    } else {
+                        Vec::new()
+                    },
                 });
                 window.push(&obs, &decision.action);
                 obs = out.obs;

@@ -12,12 +12,14 @@
 //! [`figures`] draws them.
 
 mod collect;
+mod cv;
 mod figures;
 mod file;
 mod linear;
 mod pca;
 
 pub use collect::{ProbeStep, collect};
+pub use cv::{CvScores, LatencyPoint, MeanSd, ProbeCv, ProbeReport, episode_folds, probe_cv};
 pub use figures::figures;
 pub use file::{ProbeFile, fit_probes, save};
 pub use linear::{LinearProbe, ProbeResult, Scores, Standardizer, scores, split_by_episode};
