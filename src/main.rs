@@ -892,6 +892,10 @@ fn probe_command(args: ProbeArgs) -> Result<()> {
             .map(|a| a.joint.clone())
             .collect();
         let file = probe::fit_probes(&steps, &joint_names, policy.meta.steps_done, args.seed)?;
+        println!(
+            "{label}: the probes live telemetry reads\n\n{}",
+            file.markdown()
+        );
         eprintln!("wrote {}", probe::save(&file, dir)?.display());
         let figures_dir = if args.checkpoints.len() > 1 {
             args.out.join(&label)

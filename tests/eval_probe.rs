@@ -128,6 +128,8 @@ fn bad_checkpoints_and_kinds_are_clear_errors() {
         base.to_str().unwrap(),
         "--episodes",
         "1",
+        "--folds",
+        "2",
     ]));
     assert!(e.contains("has no context encoder"), "{e}");
     let e = err(gaitscope(&[
@@ -138,6 +140,8 @@ fn bad_checkpoints_and_kinds_are_clear_errors() {
         enc.to_str().unwrap(),
         "--episodes",
         "1",
+        "--folds",
+        "2",
     ]));
     assert!(
         e.contains("holds a 'mlp-window' model, expected 'none'"),
@@ -198,4 +202,121 @@ fn probe_writes_probe_json_and_figures() {
         stdout.contains("condition, 3-way") && stdout.contains("ankle_1 damaged"),
         "{stdout}"
     );
+}
+
+#[test]
+fn eval_groups_seeds_and_pairs_them_by_training_seed() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dirs: Vec<std::path::PathBuf> = [
+        ("encoder-s2", EncoderKind::Lstm, 2),
+        ("baseline", EncoderKind::None, 1),
+        ("baseline-s2", EncoderKind::None, 2),
+        ("encoder", EncoderKind::Lstm, 1),
+    ]
+    .iter()
+    .map(|&(name, kind, seed)| {
+        let dir = tmp.path().join(name);
+        save_model(&dir, kind, seed);
+        dir
+    })
+    .collect();
+    let report = evaluate(&options(dirs, 2)).unwrap();
+    let seeds = &report.across_seeds;
+    // 2 groups × 2 conditions, each with both seeds in training-seed order.
+    assert_eq!(seeds.groups.len(), 4);
+    for g in &seeds.groups {
+        let train: Vec<u64> = g.runs.iter().map(|r| r.train_seed).collect();
+        assert_eq!(train, [1, 2], "{}", g.group);
+        assert_eq!(g.failure_modes.total(), 12);
+        let i = g.success[&500];
+        assert!(i.low <= i.mean && i.mean <= i.high, "{i:?}");
+    }
+    assert_eq!(seeds.comparisons.len(), 2);
+    for c in &seeds.comparisons {
+        assert_eq!(
+            (c.baseline.as_str(), c.encoder.as_str()),
+            ("baseline", "encoder")
+        );
+        let paired: Vec<u64> = c.per_seed.iter().map(|(s, _)| *s).collect();
+        assert_eq!(paired, [1, 2]);
+        let (b, cc) = c
+            .per_seed
+            .iter()
+            .fold((0, 0), |(b, cc), (_, m)| (b + m.b, cc + m.c));
+        assert_eq!((c.pooled.b, c.pooled.c), (b, cc));
+    }
+    let md = report.markdown();
+    assert!(
+        md.contains("Across training seeds") && md.contains("Failure modes"),
+        "{md}"
+    );
+}
+
+#[test]
+fn two_runs_with_one_training_seed_in_a_group_are_an_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b) = (tmp.path().join("baseline"), tmp.path().join("baseline-s1"));
+    save_model(&a, EncoderKind::None, 1);
+    save_model(&b, EncoderKind::None, 1);
+    let err = evaluate(&options(vec![a, b], 1)).unwrap_err().to_string();
+    assert!(err.contains("both training seed 1 of 'baseline'"), "{err}");
+}
+
+#[test]
+fn probe_cross_validates_several_seeds() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b) = (tmp.path().join("encoder"), tmp.path().join("encoder-s1"));
+    save_model(&a, EncoderKind::Lstm, 3);
+    save_model(&b, EncoderKind::Lstm, 4);
+    let out_dir = tmp.path().join("probe");
+    let out = gaitscope(&[
+        "probe",
+        "--checkpoint",
+        a.to_str().unwrap(),
+        b.to_str().unwrap(),
+        "--episodes",
+        "2",
+        "--folds",
+        "3",
+        "--max-steps",
+        "60",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out_dir.join("probe-cv.json")).unwrap()).unwrap();
+    let runs = json["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 2);
+    for run in runs {
+        assert_eq!(run["episodes"], 6);
+        // z, raw obs, raw window × all steps, post-trigger steps.
+        assert_eq!(run["condition"].as_array().unwrap().len(), 6);
+        assert_eq!(run["joints"].as_array().unwrap().len(), 8);
+        for c in run["condition"].as_array().unwrap() {
+            assert_eq!(c["folds"].as_array().unwrap().len(), 3, "{c}");
+        }
+    }
+    for name in [
+        "probe-cv.md",
+        "probe_latency.png",
+        "encoder/pca_z.png",
+        "encoder-s1/pca_z.png",
+    ] {
+        assert!(out_dir.join(name).exists(), "{name}");
+    }
+    let e = gaitscope(&[
+        "probe",
+        "--checkpoint",
+        a.to_str().unwrap(),
+        "--episodes",
+        "1",
+        "--folds",
+        "5",
+    ]);
+    assert!(String::from_utf8_lossy(&e.stderr).contains("--folds must be between 2 and"));
 }
