@@ -75,6 +75,9 @@ pub struct ErrorBarSeries {
     pub label: String,
     /// (value, low, high) per category.
     pub points: Vec<(f64, f64, f64)>,
+    /// Values drawn as small open circles beside each point (e.g. one per training seed);
+    /// empty for none.
+    pub dots: Vec<Vec<f64>>,
 }
 
 /// Points with error bars, grouped by category, one colour per series.
@@ -134,12 +137,90 @@ pub fn error_bars(
                     .enumerate()
                     .map(|(c, &(v, _, _))| Circle::new((c as f64 + offset, v), 5, color.filled())),
             )?;
+            chart.draw_series(ser.dots.iter().enumerate().flat_map(|(c, values)| {
+                values.iter().map(move |&v| {
+                    Circle::new((c as f64 + offset + 0.035, v), 3, color.stroke_width(1))
+                })
+            }))?;
         }
         chart
             .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK)
             .label_font(("sans-serif", 16))
+            .draw()?;
+        Ok(())
+    })
+}
+
+/// One stacked bar: its label and its segments' heights, bottom first.
+pub struct StackedBar {
+    pub label: String,
+    pub segments: Vec<f64>,
+}
+
+/// Stacked bars side by side, one colour per segment kind (named in the legend).
+pub fn stacked_bars(
+    path: &Path,
+    title: &str,
+    y_label: &str,
+    segment_names: &[&str],
+    bars: &[StackedBar],
+) -> Result<(), PlotError> {
+    let top = bars
+        .iter()
+        .map(|b| b.segments.iter().sum::<f64>())
+        .fold(0.0f64, f64::max)
+        .max(1e-9);
+    render(path, (1200, 560), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 24))
+            .margin(16)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            // Headroom keeps the legend off the bars.
+            .build_cartesian_2d(-0.5f64..bars.len() as f64 - 0.5, 0.0..top * 1.3)?;
+        chart
+            .configure_mesh()
+            .y_desc(y_label)
+            .y_labels(6)
+            .x_labels(bars.len())
+            .x_label_formatter(&|x| {
+                let i = x.round() as i64;
+                if (x - i as f64).abs() < 1e-6 && i >= 0 {
+                    bars.get(i as usize)
+                        .map(|b| b.label.clone())
+                        .unwrap_or_default()
+                } else {
+                    String::new()
+                }
+            })
+            .disable_x_mesh()
+            .label_style(("sans-serif", 13))
+            .draw()?;
+        for (k, name) in segment_names.iter().enumerate() {
+            let color = PALETTE[k % PALETTE.len()];
+            chart
+                .draw_series(bars.iter().enumerate().map(|(i, bar)| {
+                    let base: f64 = bar.segments[..k.min(bar.segments.len())].iter().sum();
+                    let h = bar.segments.get(k).copied().unwrap_or(0.0);
+                    Rectangle::new(
+                        [(i as f64 - 0.35, base), (i as f64 + 0.35, base + h)],
+                        color.filled(),
+                    )
+                }))?
+                .label(name.to_string())
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 5), (x + 12, y + 5)], color.filled())
+                });
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
             .draw()?;
         Ok(())
     })

@@ -73,7 +73,7 @@ fn eval_is_deterministic_paired_and_writes_its_outputs() {
     );
     let out = tmp.path().join("eval-out");
     let written = write_outputs(&a, &out).unwrap();
-    assert_eq!(written.len(), 3);
+    assert_eq!(written.len(), 5);
     for path in written {
         assert!(
             std::fs::metadata(&path).unwrap().len() > 1000,

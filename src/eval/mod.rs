@@ -541,6 +541,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         .iter()
         .map(|m| ErrorBarSeries {
             label: m.to_string(),
+            dots: Vec::new(),
             points: conditions
                 .iter()
                 .filter_map(|&c| get(m, c))
@@ -561,12 +562,14 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         "success (%)",
         &names,
         &success,
-        (0.0, 100.0),
+        // Headroom above 100 % keeps the legend off the data.
+        (0.0, 125.0),
     )?;
     let distance: Vec<ErrorBarSeries> = models
         .iter()
         .map(|m| ErrorBarSeries {
             label: m.to_string(),
+            dots: Vec::new(),
             points: conditions
                 .iter()
                 .map(|&c| {
@@ -598,9 +601,112 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         "distance (m)",
         &names,
         &distance,
-        (0.0, max_d * 1.1),
+        (0.0, max_d * 1.35),
     )?;
-    Ok(vec![json_path, success_path, distance_path])
+    let mut written = vec![json_path, success_path, distance_path];
+    written.extend(across_seeds_figures(
+        &report.across_seeds,
+        &conditions,
+        out,
+    )?);
+    Ok(written)
+}
+
+/// Success@500 per model and condition: the mean over seeds, its bootstrap interval and each
+/// seed's rate; and the failure modes as stacked bars.
+fn across_seeds_figures(
+    seeds: &seeds::AcrossSeeds,
+    conditions: &[Condition],
+    out: &Path,
+) -> Result<Vec<PathBuf>, EvalError> {
+    let mut groups: Vec<&str> = Vec::new();
+    for g in &seeds.groups {
+        if !groups.contains(&g.group.as_str()) {
+            groups.push(&g.group);
+        }
+    }
+    let get = |g: &str, c: Condition| {
+        seeds
+            .groups
+            .iter()
+            .find(|x| x.group == g && x.condition == c)
+    };
+    let series: Vec<ErrorBarSeries> = groups
+        .iter()
+        .map(|&g| {
+            let cells: Vec<&seeds::GroupCell> =
+                conditions.iter().filter_map(|&c| get(g, c)).collect();
+            let n_seeds = cells.first().map_or(0, |c| c.runs.len());
+            ErrorBarSeries {
+                label: format!("{g} ({n_seeds} seeds)"),
+                points: cells
+                    .iter()
+                    .map(|c| {
+                        let i = c.success[&500];
+                        (100.0 * i.mean, 100.0 * i.low, 100.0 * i.high)
+                    })
+                    .collect(),
+                dots: cells
+                    .iter()
+                    .map(|c| {
+                        c.runs
+                            .iter()
+                            .map(|r| 100.0 * r.success[&500].rate)
+                            .collect()
+                    })
+                    .collect(),
+            }
+        })
+        .collect();
+    let names: Vec<&str> = conditions.iter().map(|c| c.name()).collect();
+    let success_path = out.join("success_across_seeds.png");
+    plots::error_bars(
+        &success_path,
+        "Success@500 across seeds (95 % bootstrap; ○ one seed)",
+        "success (%)",
+        &names,
+        &series,
+        // Headroom above 100 % keeps the legend off the data.
+        (0.0, 125.0),
+    )?;
+    let bars: Vec<plots::StackedBar> = groups
+        .iter()
+        .flat_map(|&g| conditions.iter().filter_map(move |&c| get(g, c)))
+        .map(|cell| {
+            let f = cell.failure_modes;
+            let n = f.total().max(1) as f64;
+            plots::StackedBar {
+                label: format!(
+                    "{} {}",
+                    cell.group.strip_prefix("encoder-").unwrap_or(&cell.group),
+                    cell.condition
+                ),
+                segments: [
+                    f.success,
+                    f.timed_out,
+                    f.terminated_after_damage,
+                    f.terminated_before_damage,
+                ]
+                .iter()
+                .map(|&k| 100.0 * k as f64 / n)
+                .collect(),
+            }
+        })
+        .collect();
+    let modes_path = out.join("failure_modes.png");
+    plots::stacked_bars(
+        &modes_path,
+        "How episodes end, per model and condition (all seeds)",
+        "episodes (%)",
+        &[
+            "success",
+            "timed out",
+            "fell after damage",
+            "fell before damage",
+        ],
+        &bars,
+    )?;
+    Ok(vec![success_path, modes_path])
 }
 
 #[cfg(test)]

@@ -266,8 +266,10 @@ pub struct AcrossSeeds {
 
 /// Groups the episodes by model and compares each encoder group with the baseline group.
 pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> AcrossSeeds {
-    // Groups and their runs in the order they were evaluated; runs sorted by training seed.
-    let mut groups: Vec<(String, EncoderKind, Vec<(u64, String)>)> = Vec::new();
+    // Groups and their runs in the order they were evaluated; runs (training seed, label)
+    // sorted by training seed.
+    type Group = (String, EncoderKind, Vec<(u64, String)>);
+    let mut groups: Vec<Group> = Vec::new();
     for e in episodes {
         let g = match groups.iter_mut().find(|(g, _, _)| *g == e.group) {
             Some(g) => g,

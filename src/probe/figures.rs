@@ -232,9 +232,10 @@ pub fn figures(
         &names,
         &[ErrorBarSeries {
             label: "encoder policy".into(),
+            dots: Vec::new(),
             points,
         }],
-        (0.0, max * 1.1),
+        (0.0, max * 1.3),
     )?;
     written.push(path);
     Ok(written)
