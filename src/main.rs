@@ -283,6 +283,9 @@ struct ProbeArgs {
     /// Keep the raw window for the window probe on every this-many-th step.
     #[arg(long, default_value_t = 4)]
     window_every: usize,
+    /// Leave each checkpoint's probe.json (the live readout's probes) as it is.
+    #[arg(long)]
+    no_save: bool,
     #[arg(long, default_value_t = 500)]
     max_steps: usize,
     #[arg(long, default_value_t = 2_000_000_000)]
@@ -896,7 +899,9 @@ fn probe_command(args: ProbeArgs) -> Result<()> {
             "{label}: the probes live telemetry reads\n\n{}",
             file.markdown()
         );
-        eprintln!("wrote {}", probe::save(&file, dir)?.display());
+        if !args.no_save {
+            eprintln!("wrote {}", probe::save(&file, dir)?.display());
+        }
         let figures_dir = if args.checkpoints.len() > 1 {
             args.out.join(&label)
         } else {
