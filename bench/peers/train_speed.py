@@ -18,28 +18,8 @@ from pathlib import Path
 os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "python"))
-from gaitscope_gym import CONTEXT_LEN, make_env  # noqa: E402
-
-
-def lstm_extractor():
-    """SB3 features extractor: LSTM(37 -> 32) over the folded window, features [h_T, obs]."""
-    import torch
-    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-
-    class LstmWindow(BaseFeaturesExtractor):
-        def __init__(self, observation_space, entry=37, z_dim=32):
-            obs_dim = observation_space.shape[0] - CONTEXT_LEN * entry
-            super().__init__(observation_space, features_dim=z_dim + obs_dim)
-            self.split = CONTEXT_LEN * entry
-            self.entry = entry
-            self.lstm = torch.nn.LSTM(entry, z_dim, batch_first=True)
-
-        def forward(self, obs):
-            window = obs[:, : self.split].reshape(-1, CONTEXT_LEN, self.entry)
-            _, (h, _) = self.lstm(window)
-            return torch.cat([h[-1], obs[:, self.split :]], dim=1)
-
-    return LstmWindow
+from gaitscope_gym import make_env  # noqa: E402
+from gaitscope_sb3 import lstm_extractor  # noqa: E402
 
 
 def main():
