@@ -137,6 +137,84 @@ pub enum DamageError {
     NoSuchActuator(usize),
     #[error("torque scale {0} must be a finite number in [0, 1]")]
     BadScale(f64),
+    #[error("unknown joint '{name}' (the Ant's joints: {known})")]
+    NoSuchJoint { name: String, known: String },
+    #[error(
+        "bad damage edit '{0}': expected none, heal:JOINT, fail:JOINT, scale:JOINT=S or \
+         reset-fatigue:JOINT, with JOINT a joint name (e.g. ankle_3) or all"
+    )]
+    BadEdit(String),
+}
+
+/// The joints a [`DamageEdit`] changes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EditTarget {
+    /// One joint, by name (`ankle_3`).
+    Joint(String),
+    All,
+}
+
+/// One change to the damage, wherever it comes from: the CLI (`fail:ankle_3`, `heal:all`,
+/// `scale:ankle_3=0.1`, `reset-fatigue:hip_1`), a fork, the live panel.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DamageEdit {
+    pub target: EditTarget,
+    pub change: JointOverride,
+}
+
+impl DamageEdit {
+    /// A comma-separated list of edits; `none` is the empty list.
+    pub fn parse_list(text: &str) -> Result<Vec<DamageEdit>, DamageError> {
+        if text.trim() == "none" {
+            return Ok(Vec::new());
+        }
+        text.split(',').map(|e| e.trim().parse()).collect()
+    }
+}
+
+impl FromStr for DamageEdit {
+    type Err = DamageError;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        let bad = || DamageError::BadEdit(text.to_string());
+        let (verb, rest) = text.split_once(':').ok_or_else(bad)?;
+        let target = |name: &str| match name {
+            "" => Err(bad()),
+            "all" => Ok(EditTarget::All),
+            joint => Ok(EditTarget::Joint(joint.to_string())),
+        };
+        let (target, change) = match verb {
+            "heal" => (target(rest)?, JointOverride::Heal),
+            "fail" => (target(rest)?, JointOverride::FailNow),
+            "reset-fatigue" => (target(rest)?, JointOverride::ResetFatigue),
+            "scale" => {
+                let (joint, value) = rest.split_once('=').ok_or_else(bad)?;
+                let s: f64 = value.trim().parse().map_err(|_| bad())?;
+                if !(s.is_finite() && (0.0..=1.0).contains(&s)) {
+                    return Err(DamageError::BadScale(s));
+                }
+                (target(joint)?, JointOverride::SetScale(s))
+            }
+            _ => return Err(bad()),
+        };
+        Ok(DamageEdit { target, change })
+    }
+}
+
+impl fmt::Display for DamageEdit {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let target = match &self.target {
+            EditTarget::All => "all",
+            EditTarget::Joint(j) => j.as_str(),
+        };
+        match self.change {
+            JointOverride::Heal => write!(f, "heal:{target}"),
+            JointOverride::FailNow => write!(f, "fail:{target}"),
+            JointOverride::ResetFatigue => write!(f, "reset-fatigue:{target}"),
+            JointOverride::SetScale(s) => write!(f, "scale:{target}={s}"),
+        }
+    }
 }
 
 /// Fatigue, triggers and torque scales of one episode.
@@ -256,6 +334,28 @@ impl DamageState {
         Ok(())
     }
 
+    /// The actuators an edit's target names.
+    pub fn resolve(&self, target: &EditTarget) -> Result<Vec<usize>, DamageError> {
+        match target {
+            EditTarget::All => Ok((0..N_ACTUATORS).collect()),
+            EditTarget::Joint(name) => match self.joint_names.iter().position(|j| j == name) {
+                Some(i) => Ok(vec![i]),
+                None => Err(DamageError::NoSuchJoint {
+                    name: name.clone(),
+                    known: self.joint_names.join(", "),
+                }),
+            },
+        }
+    }
+
+    /// Applies an edit before env step `step` runs (each joint it changes is one event).
+    pub fn apply_edit(&mut self, step: usize, edit: &DamageEdit) -> Result<(), DamageError> {
+        for actuator in self.resolve(&edit.target)? {
+            self.apply_override(step, actuator, edit.change)?;
+        }
+        Ok(())
+    }
+
     fn push_event(&mut self, step: usize, actuator: usize, kind: DamageEventKind) {
         self.events.push(DamageEvent {
             step,
@@ -316,6 +416,61 @@ impl DamageState {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn damage_edits_parse_print_and_resolve() {
+        let edits = DamageEdit::parse_list("heal:all, fail:ankle_3,scale:hip_1=0.25").unwrap();
+        assert_eq!(
+            edits,
+            [
+                DamageEdit {
+                    target: EditTarget::All,
+                    change: JointOverride::Heal
+                },
+                DamageEdit {
+                    target: EditTarget::Joint("ankle_3".into()),
+                    change: JointOverride::FailNow
+                },
+                DamageEdit {
+                    target: EditTarget::Joint("hip_1".into()),
+                    change: JointOverride::SetScale(0.25)
+                },
+            ]
+        );
+        let printed: Vec<String> = edits.iter().map(ToString::to_string).collect();
+        assert_eq!(printed, ["heal:all", "fail:ankle_3", "scale:hip_1=0.25"]);
+        assert_eq!(DamageEdit::parse_list("none").unwrap(), []);
+        for bad in [
+            "",
+            "heal",
+            "heal:",
+            "scale:hip_1",
+            "scale:hip_1=x",
+            "melt:hip_1",
+        ] {
+            assert!(
+                matches!(bad.parse::<DamageEdit>(), Err(DamageError::BadEdit(_))),
+                "{bad}"
+            );
+        }
+        assert_eq!(
+            "scale:all=2".parse::<DamageEdit>(),
+            Err(DamageError::BadScale(2.0))
+        );
+        let names = std::array::from_fn(|i| format!("j{i}"));
+        let mut d = DamageState::new(DamageConfig::default(), names);
+        d.reset(Condition::Severe);
+        assert_eq!(d.resolve(&EditTarget::Joint("j3".into())), Ok(vec![3]));
+        assert_eq!(d.resolve(&EditTarget::All).unwrap().len(), N_ACTUATORS);
+        assert!(matches!(
+            d.resolve(&EditTarget::Joint("ankle_9".into())),
+            Err(DamageError::NoSuchJoint { .. })
+        ));
+        // "all" is one edit and eight events, one per joint.
+        d.apply_edit(4, &"fail:all".parse().unwrap()).unwrap();
+        assert!(d.triggered().iter().all(|&t| t));
+        assert_eq!(d.events().len(), N_ACTUATORS);
+    }
 
     fn state(condition: Condition) -> DamageState {
         let names = std::array::from_fn(|i| format!("j{i}"));

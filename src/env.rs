@@ -127,9 +127,38 @@ pub struct AntEnv {
     rng: ChaCha8Rng,
     steps: usize,
     prev_distance: f64,
+    /// The torso's xy as the last reset or step left MuJoCo's `xpos` (Gymnasium's
+    /// `get_body_com` after a step reads the last substep's forward pass); kept so a restored
+    /// snapshot measures the next step's progress from the same place.
+    last_xy: [f64; 2],
     done: bool,
     unstable_warnings: i32,
 }
+
+/// Everything that decides an env's future, restorable exactly: MuJoCo's integration state
+/// (every input of `mj_step`, the solver's warm start included), the damage state, the RNG and
+/// the episode's counters. A few hundred numbers for the Ant.
+#[derive(Debug, Clone)]
+pub struct EnvSnapshot {
+    physics: Box<[f64]>,
+    damage: DamageState,
+    rng: ChaCha8Rng,
+    steps: usize,
+    prev_distance: f64,
+    last_xy: [f64; 2],
+    done: bool,
+}
+
+impl EnvSnapshot {
+    /// Env steps taken in the episode when the snapshot was taken.
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+}
+
+/// `mjSTATE_INTEGRATION`: FULLPHYSICS leaves out the warm start, which changes the solver's
+/// result in the last bits.
+const SNAPSHOT_STATE: u32 = MjtState::mjSTATE_INTEGRATION as u32;
 
 impl AntEnv {
     /// Loads the model named by the config (or the bundled Ant) and seeds the env's RNG.
@@ -155,10 +184,12 @@ impl AntEnv {
             rng: ChaCha8Rng::seed_from_u64(seed),
             steps: 0,
             prev_distance: 0.0,
+            last_xy: [0.0; 2],
             done: true,
             unstable_warnings: 0,
         };
         env.physics.forward();
+        env.last_xy = env.xpos_torso_xy();
         env.prev_distance = env.goal_distance();
         Ok(env)
     }
@@ -210,8 +241,44 @@ impl AntEnv {
         self.steps = 0;
         self.done = false;
         self.unstable_warnings = self.divergence_warnings();
+        self.last_xy = self.xpos_torso_xy();
         self.prev_distance = self.goal_distance();
         self.observation()
+    }
+
+    /// The state to [`Self::restore`] later (a rewind) or into another env of the same config
+    /// (a fork).
+    pub fn snapshot(&self) -> EnvSnapshot {
+        EnvSnapshot {
+            physics: self.physics.state(SNAPSHOT_STATE),
+            damage: self.damage.clone(),
+            rng: self.rng.clone(),
+            steps: self.steps,
+            prev_distance: self.prev_distance,
+            last_xy: self.last_xy,
+            done: self.done,
+        }
+    }
+
+    /// Puts the env back into `snapshot`'s state: stepping on from here repeats, bit for bit,
+    /// what followed the snapshot (given the same actions).
+    pub fn restore(&mut self, snapshot: &EnvSnapshot) -> Result<(), EnvError> {
+        self.physics
+            .set_state(&snapshot.physics, SNAPSHOT_STATE)
+            .map_err(|e| EnvError::BadState(format!("restoring a snapshot: {e:?}")))?;
+        // Derived quantities (body poses, contacts) for whoever draws the restored state; the
+        // next mj_step recomputes them from the state anyway.
+        self.physics.forward();
+        self.physics.rne_post_constraint();
+        self.damage = snapshot.damage.clone();
+        self.rng = snapshot.rng.clone();
+        self.steps = snapshot.steps;
+        self.prev_distance = snapshot.prev_distance;
+        self.last_xy = snapshot.last_xy;
+        self.done = snapshot.done;
+        // Only warnings raised by later steps count as divergence.
+        self.unstable_warnings = self.divergence_warnings();
+        Ok(())
     }
 
     /// Advances one env step (frame_skip physics steps) with `action` in [−1, 1]⁸.
@@ -222,7 +289,7 @@ impl AntEnv {
         }
         let commanded = validate_action(action)?;
         let applied = self.damage.applied_action(&commanded);
-        let xy_before = self.torso_xy();
+        let xy_before = self.last_xy;
 
         self.physics.ctrl_mut().copy_from_slice(&applied);
         for _ in 0..self.config.env.frame_skip {
@@ -237,7 +304,8 @@ impl AntEnv {
         self.unstable_warnings = warnings;
 
         let env = &self.config.env;
-        let xy_after = self.torso_xy();
+        let xy_after = self.xpos_torso_xy();
+        self.last_xy = xy_after;
         let forward = (xy_after[0] - xy_before[0]) / self.dt;
         let healthy = !unstable && self.is_healthy();
         let ctrl_cost = env.ctrl_cost_weight * applied.iter().map(|a| a * a).sum::<f64>();
@@ -292,6 +360,11 @@ impl AntEnv {
         Ok(self.damage.apply_override(self.steps, actuator, change)?)
     }
 
+    /// Applies a damage edit (a joint by name, or all); it takes effect on the next step.
+    pub fn apply_edit(&mut self, edit: &crate::damage::DamageEdit) -> Result<(), EnvError> {
+        Ok(self.damage.apply_edit(self.steps, edit)?)
+    }
+
     /// The current observation (what the last reset or step returned).
     pub fn observation(&self) -> Observation {
         let qpos = self.physics.qpos();
@@ -307,7 +380,12 @@ impl AntEnv {
     }
 
     /// Torso position in the plane: the torso body's `xpos` (Gymnasium's `get_body_com`).
+    /// The torso's xy (Gymnasium's `get_body_com("torso")[:2]`) after the last reset or step.
     pub fn torso_xy(&self) -> [f64; 2] {
+        self.last_xy
+    }
+
+    fn xpos_torso_xy(&self) -> [f64; 2] {
         let p = self.physics.xpos()[self.torso_body];
         [p[0], p[1]]
     }
@@ -528,4 +606,52 @@ fn check_state_vector(name: &str, values: &[f64], expected: usize) -> Result<(),
         )));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::damage::JointOverride;
+
+    fn actions(n: usize, seed: u64) -> Vec<Action> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        (0..n)
+            .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..=1.0)))
+            .collect()
+    }
+
+    fn run(env: &mut AntEnv, actions: &[Action]) -> Vec<StepOutcome> {
+        actions.iter().map_while(|a| env.step(a).ok()).collect()
+    }
+
+    /// Rewind: restoring a snapshot and stepping the same actions repeats every outcome bit for
+    /// bit (obs, rewards, fatigue triggers, flags), in the same env and in a second env (a fork).
+    #[test]
+    fn a_restored_snapshot_replays_bit_for_bit() {
+        let mut config = GaitConfig::default();
+        config.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+        let mut env = AntEnv::new(config.clone(), 0).unwrap();
+        env.reset_with_seed(5);
+        run(&mut env, &actions(40, 1));
+        // A hand override in the history: the snapshot carries overrides too.
+        env.apply_override(2, JointOverride::SetScale(0.3)).unwrap();
+        let snapshot = env.snapshot();
+        assert_eq!(snapshot.steps(), 40);
+        let later = actions(150, 2);
+        let first = run(&mut env, &later);
+        assert!(first.len() > 20, "the episode should run on");
+        assert!(
+            first.iter().any(|o| o.new_triggers > 0),
+            "a trigger after the snapshot"
+        );
+        env.restore(&snapshot).unwrap();
+        assert_eq!(env.steps(), 40);
+        let again = run(&mut env, &later);
+        assert_eq!(first, again);
+        let mut fork = AntEnv::new(config, 99).unwrap();
+        fork.reset_with_seed(77);
+        fork.restore(&snapshot).unwrap();
+        assert_eq!(run(&mut fork, &later), first);
+        assert_eq!(fork.damage().events(), env.damage().events());
+    }
 }

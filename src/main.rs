@@ -97,9 +97,21 @@ struct RolloutArgs {
     /// Replay: the actions, [[8 numbers], ...].
     #[arg(long, value_name = "FILE", requires = "init_state")]
     actions: Option<PathBuf>,
-    /// Replay output: one JSON line per step, the state after that step.
-    #[arg(long, requires = "init_state")]
+    /// One JSON line per step, the state after that step (replay, or a --checkpoint's
+    /// episodes with "lane" and the commanded "action").
+    #[arg(long)]
     jsonl: bool,
+    /// Run this checkpoint's deterministic policy instead of a built-in one.
+    #[arg(long, value_name = "DIR", conflicts_with = "init_state")]
+    checkpoint: Option<PathBuf>,
+    /// Fork each episode before step K: a second lane from the identical state, with --fork's
+    /// edits applied, runs to its own end.
+    #[arg(long, value_name = "K", requires_all = ["checkpoint", "fork"])]
+    fork_at: Option<usize>,
+    /// The fork's damage edits: none, heal:all, heal:JOINT, fail:JOINT, scale:JOINT=S,
+    /// reset-fatigue:JOINT, comma-separated (JOINT by name, e.g. ankle_3).
+    #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
+    fork: Option<String>,
 }
 
 #[derive(Args)]
@@ -524,6 +536,39 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
 
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
+    }
+    if args.jsonl && args.checkpoint.is_none() {
+        bail!("--jsonl needs --init-state and --actions (a replay) or --checkpoint");
+    }
+    if let Some(dir) = &args.checkpoint {
+        let policy = gaitscope::policy::Policy::load(dir, None)?;
+        let fork = match (args.fork_at, &args.fork) {
+            (Some(at), Some(edits)) => Some(rollout::Fork {
+                at,
+                edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
+            }),
+            _ => None,
+        };
+        for episode in 0..args.episodes {
+            let seed = args.seed.wrapping_add(episode as u64);
+            let summary =
+                rollout::run_policy_episode(&policy, &config, episode, seed, fork.as_ref(), |r| {
+                    if args.jsonl {
+                        serde_json::to_writer(&mut out, r)?;
+                        writeln!(out)?;
+                    }
+                    Ok(())
+                })
+                .with_context(|| format!("episode {episode} (seed {seed})"))?;
+            if args.json {
+                serde_json::to_writer(&mut out, &summary)?;
+                writeln!(out)?;
+            } else if !args.jsonl {
+                writeln!(out, "{summary}")?;
+            }
+            out.flush()?;
+        }
+        return Ok(());
     }
     let mut env = AntEnv::new(config, args.seed)?;
     for episode in 0..args.episodes {

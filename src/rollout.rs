@@ -197,6 +197,10 @@ pub enum ReplayError {
     Env(#[from] EnvError),
     #[error("writing replay output: {0}")]
     Write(#[source] std::io::Error),
+    #[error("policy inference failed: {0}")]
+    Policy(#[from] candle_core::Error),
+    #[error("--fork-at {at} is beyond the episode, which ended after {steps} steps")]
+    ForkBeyondEpisode { at: usize, steps: usize },
 }
 
 fn read_json<T: serde::de::DeserializeOwned>(
@@ -291,4 +295,123 @@ pub fn replay(
         }
     }
     Ok(steps)
+}
+
+/// One line of a policy rollout: the replay record, the lane it belongs to (`main`, or `fork`
+/// for the counterfactual) and the commanded action.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LaneRecord {
+    pub lane: &'static str,
+    #[serde(flatten)]
+    pub record: StepRecord,
+    pub action: Action,
+}
+
+/// A fork: from the exact state before step `at`, apply `edits` and run on.
+#[derive(Debug, Clone)]
+pub struct Fork {
+    pub at: usize,
+    pub edits: Vec<crate::damage::DamageEdit>,
+}
+
+/// One lane's live state: the env, the policy's context window, the current observation.
+struct PolicyLane {
+    env: AntEnv,
+    window: crate::window::ContextWindow,
+    obs: crate::env::Observation,
+}
+
+impl PolicyLane {
+    /// One deterministic policy step.
+    fn step(
+        &mut self,
+        policy: &crate::policy::Policy,
+    ) -> Result<(StepOutcome, Action), ReplayError> {
+        let decision = policy.act_one(
+            &self.obs,
+            &self.window,
+            crate::policy::ActionMode::Deterministic,
+            None,
+        )?;
+        let out = self.env.step(&decision.action)?;
+        self.window.push(&self.obs, &decision.action);
+        self.obs = out.obs;
+        Ok((out.clone(), out.commanded_action))
+    }
+}
+
+/// A deterministic episode of `policy` from the reset with `seed`, each step's line to `sink`
+/// (lane `main`), then the fork's steps from `fork.at` on (lane `fork`) if asked. Returns the
+/// main episode's summary.
+pub fn run_policy_episode(
+    policy: &crate::policy::Policy,
+    config: &crate::config::GaitConfig,
+    episode: usize,
+    seed: u64,
+    fork: Option<&Fork>,
+    mut sink: impl FnMut(&LaneRecord) -> std::io::Result<()>,
+) -> Result<EpisodeSummary, ReplayError> {
+    let mut env = AntEnv::new(config.clone(), seed)?;
+    if let Some(fork) = fork {
+        // Every edit names a joint this model has, before minutes of stepping.
+        for edit in &fork.edits {
+            env.damage().resolve(&edit.target).map_err(EnvError::from)?;
+        }
+    }
+    let obs = env.reset_with_seed(seed);
+    let mut lane = PolicyLane {
+        env,
+        window: crate::window::ContextWindow::new(policy.net().context_len),
+        obs,
+    };
+    let mut branch = None;
+    let mut episode_return = 0.0;
+    let last = loop {
+        if let Some(f) = fork
+            && lane.env.steps() == f.at
+        {
+            branch = Some((lane.env.snapshot(), lane.window.clone(), lane.obs));
+        }
+        let (out, action) = lane.step(policy)?;
+        episode_return += out.reward.total;
+        let record = StepRecord::capture(&lane.env, &out);
+        sink(&LaneRecord {
+            lane: "main",
+            record,
+            action,
+        })
+        .map_err(ReplayError::Write)?;
+        if out.done() {
+            break out;
+        }
+    };
+    let summary = summarize(&lane.env, episode, seed, &last, episode_return);
+    if let Some(f) = fork {
+        let Some((snapshot, window, obs)) = branch else {
+            return Err(ReplayError::ForkBeyondEpisode {
+                at: f.at,
+                steps: summary.steps,
+            });
+        };
+        let mut env = AntEnv::new(config.clone(), seed)?;
+        env.restore(&snapshot)?;
+        for edit in &f.edits {
+            env.apply_edit(edit)?;
+        }
+        let mut fork_lane = PolicyLane { env, window, obs };
+        loop {
+            let (out, action) = fork_lane.step(policy)?;
+            let record = StepRecord::capture(&fork_lane.env, &out);
+            sink(&LaneRecord {
+                lane: "fork",
+                record,
+                action,
+            })
+            .map_err(ReplayError::Write)?;
+            if out.done() {
+                break;
+            }
+        }
+    }
+    Ok(summary)
 }

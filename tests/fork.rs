@@ -1,0 +1,131 @@
+//! `rollout --checkpoint ... --fork-at K --fork EDITS`: a counterfactual lane from the exact
+//! state before step K, through the CLI.
+
+use serde_json::Value;
+use std::process::Command;
+
+const CHECKPOINTS: [&str; 3] = [
+    concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/encoder-lstm"),
+    concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/baseline"),
+    concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/encoder-mlp"),
+];
+
+fn rollout(extra: &[&str]) -> Result<Vec<Value>, String> {
+    rollout_of(CHECKPOINTS[0], extra)
+}
+
+fn rollout_of(checkpoint: &str, extra: &[&str]) -> Result<Vec<Value>, String> {
+    let out = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args([
+            "rollout",
+            "--checkpoint",
+            checkpoint,
+            "--episodes",
+            "1",
+            "--seed",
+            "3",
+        ])
+        .args(["--condition", "severe", "--max-steps", "150", "--jsonl"])
+        .args(extra)
+        .output()
+        .unwrap();
+    if !out.status.success() {
+        return Err(String::from_utf8_lossy(&out.stderr).into_owned());
+    }
+    Ok(String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect())
+}
+
+fn lane<'a>(rows: &'a [Value], name: &str) -> Vec<&'a Value> {
+    rows.iter().filter(|r| r["lane"] == name).collect()
+}
+
+fn without_lane(v: &Value) -> Value {
+    let mut v = v.clone();
+    v.as_object_mut().unwrap().remove("lane");
+    v
+}
+
+/// Every encoder kind: the fork restores physics, damage and the policy's window exactly.
+#[test]
+fn a_fork_with_no_edit_repeats_the_main_lane_bit_for_bit() {
+    for checkpoint in CHECKPOINTS {
+        let rows = rollout_of(checkpoint, &["--fork-at", "12", "--fork", "none"]).unwrap();
+        let (main, fork) = (lane(&rows, "main"), lane(&rows, "fork"));
+        assert!(main.len() > 20, "{checkpoint}: {} steps", main.len());
+        assert_eq!(fork.len(), main.len() - 12);
+        assert_eq!(fork[0]["step"], 12, "steps count from the episode start");
+        for (m, f) in main[12..].iter().zip(&fork) {
+            // serde_json prints f64s exactly (shortest round-trip): equal values are equal bits.
+            assert_eq!(without_lane(m), without_lane(f), "{checkpoint}");
+        }
+    }
+}
+
+#[test]
+fn a_heal_all_fork_applies_what_it_commands_and_leaves_the_main_lane_alone() {
+    let plain = rollout(&[]).unwrap();
+    let k = 25;
+    let rows = rollout(&["--fork-at", &k.to_string(), "--fork", "heal:all"]).unwrap();
+    let (main, fork) = (lane(&rows, "main"), lane(&rows, "fork"));
+    // The main lane is the run without a fork.
+    assert_eq!(main.len(), plain.len());
+    for (a, b) in main.iter().zip(&plain) {
+        assert_eq!(*a, b);
+    }
+    // Under severe damage the main lane had joints triggered by step K, so its applied action
+    // is scaled down there.
+    let before = main[k - 1]["triggered"].as_array().unwrap();
+    assert!(
+        before.iter().any(|t| t == true),
+        "no joint triggered by step {k}"
+    );
+    // From K on the fork applies exactly what it commands, until fatigue triggers a joint anew.
+    let mut checked = 0;
+    for row in &fork {
+        if row["triggered"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|t| t == true)
+        {
+            break;
+        }
+        assert_eq!(row["applied_action"], row["action"], "step {}", row["step"]);
+        checked += 1;
+    }
+    assert!(checked >= 5, "only {checked} healed steps");
+    assert_eq!(fork[0]["step"], k);
+}
+
+#[test]
+fn bad_forks_are_clear_errors() {
+    for (args, message) in [
+        (
+            vec!["--fork-at", "5", "--fork", "fail:ankle_9"],
+            "unknown joint 'ankle_9'",
+        ),
+        (
+            vec!["--fork-at", "5", "--fork", "scale:ankle_3=1.5"],
+            "torque scale 1.5",
+        ),
+        (
+            vec!["--fork-at", "5", "--fork", "break:ankle_3"],
+            "bad damage edit 'break:ankle_3'",
+        ),
+        (
+            vec!["--fork-at", "5", "--fork", "heal:"],
+            "bad damage edit 'heal:'",
+        ),
+        (
+            vec!["--fork-at", "100000", "--fork", "none"],
+            "is beyond the episode",
+        ),
+        (vec!["--fork-at", "5"], "--fork"),
+    ] {
+        let err = rollout(&args).unwrap_err();
+        assert!(err.contains(message), "{args:?}: {err}");
+    }
+}
