@@ -27,6 +27,9 @@ pub const NQ: usize = 15;
 pub const NV: usize = 14;
 
 pub type Observation = [f64; OBS_DIM];
+/// The Ant's legs, in the order of the model's bodies: front_left_leg, front_right_leg,
+/// back_leg, right_back_leg.
+pub const N_LEGS: usize = 4;
 pub type Action = [f64; ACT_DIM];
 
 /// Gymnasium's `ant.xml`, compiled in so the binary runs from any directory.
@@ -121,6 +124,9 @@ pub struct AntEnv {
     damage: DamageState,
     actuators: [ActuatorInfo; N_ACTUATORS],
     torso_body: usize,
+    feet: [Vec<usize>; N_LEGS],
+    leg_names: [String; N_LEGS],
+    ground: Vec<usize>,
     init_qpos: [f64; NQ],
     init_qvel: [f64; NV],
     dt: f64,
@@ -178,6 +184,9 @@ impl AntEnv {
             damage,
             actuators: ant.actuators,
             torso_body: ant.torso_body,
+            feet: ant.feet,
+            leg_names: ant.leg_names,
+            ground: ant.ground,
             init_qpos: ant.init_qpos,
             init_qvel: [0.0; NV],
             dt,
@@ -380,6 +389,27 @@ impl AntEnv {
     }
 
     /// Torso position in the plane: the torso body's `xpos` (Gymnasium's `get_body_com`).
+    /// Per leg ([`N_LEGS`], model order), whether its foot touches the floor: a contact in
+    /// MuJoCo's list (of the last step's final collision pass) between a foot geom and a geom of
+    /// the world body.
+    pub fn foot_contacts(&self) -> [bool; N_LEGS] {
+        let mut touching = [false; N_LEGS];
+        for contact in self.physics.contact() {
+            let [a, b] = contact.geom.map(|g| g as usize);
+            for (leg, feet) in self.feet.iter().enumerate() {
+                let foot_on_ground = (feet.contains(&a) && self.ground.contains(&b))
+                    || (feet.contains(&b) && self.ground.contains(&a));
+                touching[leg] |= foot_on_ground;
+            }
+        }
+        touching
+    }
+
+    /// The legs' body names, in [`Self::foot_contacts`]'s order.
+    pub fn leg_names(&self) -> &[String; N_LEGS] {
+        &self.leg_names
+    }
+
     /// The torso's xy (Gymnasium's `get_body_com("torso")[:2]`) after the last reset or step.
     pub fn torso_xy(&self) -> [f64; 2] {
         self.last_xy
@@ -517,6 +547,11 @@ struct AntLayout {
     actuators: [ActuatorInfo; N_ACTUATORS],
     torso_body: usize,
     init_qpos: [f64; NQ],
+    /// Per leg (the torso's child bodies, in model order): the geoms of its last body, the foot.
+    feet: [Vec<usize>; N_LEGS],
+    leg_names: [String; N_LEGS],
+    /// Geoms of the world body (the floor).
+    ground: Vec<usize>,
 }
 
 impl AntLayout {
@@ -568,10 +603,50 @@ impl AntLayout {
         // Gymnasium's init_qpos is the model's qpos0 (torso at 0.75 m, upright, joints at 0).
         let mut init_qpos = [0.0; NQ];
         init_qpos.copy_from_slice(model.qpos0());
+        let parent = model.body_parentid();
+        let legs: Vec<usize> = (0..parent.len())
+            .filter(|&b| parent[b] as usize == torso_body && b != torso_body)
+            .collect();
+        if legs.len() != N_LEGS {
+            return Err(format!(
+                "expected {N_LEGS} legs (bodies under the torso), found {}",
+                legs.len()
+            ));
+        }
+        let geom_body = model.geom_bodyid();
+        let mut feet: [Vec<usize>; N_LEGS] = Default::default();
+        let mut leg_names: [String; N_LEGS] = Default::default();
+        for (k, &leg) in legs.iter().enumerate() {
+            // Down the leg's chain to its last body.
+            let mut foot = leg;
+            while let Some(child) =
+                (0..parent.len()).find(|&b| b != foot && parent[b] as usize == foot)
+            {
+                foot = child;
+            }
+            feet[k] = (0..geom_body.len())
+                .filter(|&g| geom_body[g] as usize == foot)
+                .collect();
+            if feet[k].is_empty() {
+                return Err(format!(
+                    "leg {k}'s last body has no geom to touch the floor"
+                ));
+            }
+            leg_names[k] = model
+                .id_to_name(MjtObjBase::mjOBJ_BODY, leg)
+                .filter(|n| !n.is_empty())
+                .map_or_else(|| format!("leg{k}"), str::to_string);
+        }
+        let ground = (0..geom_body.len())
+            .filter(|&g| geom_body[g] == 0)
+            .collect();
         Ok(Self {
             actuators,
             torso_body,
             init_qpos,
+            feet,
+            leg_names,
+            ground,
         })
     }
 }
@@ -622,6 +697,54 @@ mod tests {
 
     fn run(env: &mut AntEnv, actions: &[Action]) -> Vec<StepOutcome> {
         actions.iter().map_while(|a| env.step(a).ok()).collect()
+    }
+
+    /// Foot contacts against MuJoCo's contact list read here by geom name, on stepped states
+    /// where both touching and lifted feet occur.
+    #[test]
+    fn foot_contacts_match_mujoco_contacts_by_geom_name() {
+        let mut env = AntEnv::new(GaitConfig::default(), 0).unwrap();
+        env.reset_with_seed(2);
+        assert_eq!(
+            env.leg_names(),
+            &[
+                "front_left_leg",
+                "front_right_leg",
+                "back_leg",
+                "right_back_leg"
+            ]
+        );
+        let model = env.physics().model();
+        let id = |name: &str| model.name_to_id(MjtObjBase::mjOBJ_GEOM, name).unwrap();
+        let feet = [
+            "left_ankle_geom",
+            "right_ankle_geom",
+            "third_ankle_geom",
+            "fourth_ankle_geom",
+        ]
+        .map(id);
+        let floor = id("floor");
+        let (mut seen_on, mut seen_off) = (0, 0);
+        for action in actions(300, 3) {
+            if env.step(&action).is_err() {
+                env.reset();
+                continue;
+            }
+            let expected: [bool; N_LEGS] = std::array::from_fn(|leg| {
+                env.physics().contact().iter().any(|c| {
+                    let g = c.geom.map(|g| g as usize);
+                    g == [feet[leg], floor] || g == [floor, feet[leg]]
+                })
+            });
+            let got = env.foot_contacts();
+            assert_eq!(got, expected);
+            seen_on += got.iter().filter(|&&c| c).count();
+            seen_off += got.iter().filter(|&&c| !c).count();
+        }
+        assert!(
+            seen_on > 50 && seen_off > 50,
+            "{seen_on} on, {seen_off} off"
+        );
     }
 
     /// Rewind: restoring a snapshot and stepping the same actions repeats every outcome bit for

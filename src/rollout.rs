@@ -151,6 +151,9 @@ pub struct StepRecord {
     pub torso_xy: [f64; 2],
     pub qpos: Vec<f64>,
     pub qvel: Vec<f64>,
+    /// Per leg (front_left, front_right, back, right_back: the model's body order), whether its
+    /// foot touches the floor.
+    pub contacts: [bool; crate::env::N_LEGS],
 }
 
 impl StepRecord {
@@ -165,6 +168,7 @@ impl StepRecord {
             triggered: *env.damage().triggered(),
             applied_action: out.applied_action,
             torso_xy: env.torso_xy(),
+            contacts: env.foot_contacts(),
             qpos: env.qpos().to_vec(),
             qvel: env.qvel().to_vec(),
         }
