@@ -126,6 +126,7 @@ pub struct AntEnv {
     torso_body: usize,
     feet: [Vec<usize>; N_LEGS],
     leg_names: [String; N_LEGS],
+    leg_of_actuator: [usize; N_ACTUATORS],
     ground: Vec<usize>,
     init_qpos: [f64; NQ],
     init_qvel: [f64; NV],
@@ -186,6 +187,7 @@ impl AntEnv {
             torso_body: ant.torso_body,
             feet: ant.feet,
             leg_names: ant.leg_names,
+            leg_of_actuator: ant.leg_of_actuator,
             ground: ant.ground,
             init_qpos: ant.init_qpos,
             init_qvel: [0.0; NV],
@@ -410,6 +412,11 @@ impl AntEnv {
         &self.leg_names
     }
 
+    /// The leg (index into [`Self::leg_names`]) each actuator's joint moves.
+    pub fn leg_of_actuator(&self) -> &[usize; N_ACTUATORS] {
+        &self.leg_of_actuator
+    }
+
     /// The torso's xy (Gymnasium's `get_body_com("torso")[:2]`) after the last reset or step.
     pub fn torso_xy(&self) -> [f64; 2] {
         self.last_xy
@@ -550,6 +557,8 @@ struct AntLayout {
     /// Per leg (the torso's child bodies, in model order): the geoms of its last body, the foot.
     feet: [Vec<usize>; N_LEGS],
     leg_names: [String; N_LEGS],
+    /// The leg each actuator's joint moves.
+    leg_of_actuator: [usize; N_ACTUATORS],
     /// Geoms of the world body (the floor).
     ground: Vec<usize>,
 }
@@ -640,12 +649,25 @@ impl AntLayout {
         let ground = (0..geom_body.len())
             .filter(|&g| geom_body[g] == 0)
             .collect();
+        let mut leg_of_actuator = [0; N_ACTUATORS];
+        for (i, a) in actuators.iter().enumerate() {
+            // Up from the joint's body to the torso's child it hangs from.
+            let mut b = a.body_id;
+            while b != 0 && parent[b] as usize != torso_body {
+                b = parent[b] as usize;
+            }
+            leg_of_actuator[i] = legs
+                .iter()
+                .position(|&l| l == b)
+                .ok_or_else(|| format!("actuator {i}'s joint is on no leg"))?;
+        }
         Ok(Self {
             actuators,
             torso_body,
             init_qpos,
             feet,
             leg_names,
+            leg_of_actuator,
             ground,
         })
     }

@@ -271,3 +271,75 @@ fn steps_with(chunks: &[Chunk], entity: &str, count: impl Fn(&Chunk) -> Vec<usiz
         .map(|(t, _)| t)
         .collect()
 }
+
+/// The gait diagram: each leg's entity holds its row exactly at the steps where MuJoCo's contact
+/// list (read here by geom name) has that leg's foot on the floor, and a Clear at the others.
+#[test]
+fn the_gait_diagram_follows_mujoco_foot_contacts() {
+    let mut env = AntEnv::new(config(), SEED).unwrap();
+    env.reset_with_seed(SEED);
+    let mut rng = policy_rng(SEED);
+    let feet = [
+        "left_ankle_geom",
+        "right_ankle_geom",
+        "third_ankle_geom",
+        "fourth_ankle_geom",
+    ];
+    let mut stance: Vec<Vec<i64>> = vec![Vec::new(); 4];
+    for t in 1.. {
+        let out = env.step(&BuiltinPolicy::Random.act(&mut rng)).unwrap();
+        let model = env.physics().model();
+        let id = |n: &str| {
+            model
+                .name_to_id(mujoco_rs::prelude::MjtObjBase::mjOBJ_GEOM, n)
+                .unwrap() as i32
+        };
+        let floor = id("floor");
+        for (leg, foot) in feet.iter().enumerate() {
+            let foot = id(foot);
+            if env
+                .physics()
+                .contact()
+                .iter()
+                .any(|c| c.geom == [foot, floor] || c.geom == [floor, foot])
+            {
+                stance[leg].push(t);
+            }
+        }
+        if out.done() {
+            break;
+        }
+    }
+    let summary = record(options(Sink::Memory), &AtomicBool::new(false)).unwrap();
+    let chunks = chunks(summary.storage.unwrap().take());
+    let scalars = rerun::Scalars::descriptor_scalars().component;
+    let legs = [
+        "front_left_leg",
+        "front_right_leg",
+        "back_leg",
+        "right_back_leg",
+    ];
+    let mut swing_seen = false;
+    for (leg, name) in legs.iter().enumerate() {
+        let path = format!("/ant/gait/{name}");
+        let rows = by_step(&chunks, &path, |c| {
+            c.iter_slices::<f64>(scalars).map(|s| s.to_vec()).collect()
+        });
+        let logged: Vec<i64> = rows
+            .iter()
+            .filter(|(_, v)| !v.is_empty())
+            .map(|(t, _)| *t)
+            .collect();
+        assert_eq!(logged, stance[leg], "{path}");
+        assert!(
+            rows.values().flatten().all(|&v| v == (4 - leg) as f64),
+            "{path}: its row is {}",
+            4 - leg
+        );
+        swing_seen |= logged.len() < STEPS;
+    }
+    assert!(
+        swing_seen,
+        "some foot must leave the floor in {STEPS} steps"
+    );
+}

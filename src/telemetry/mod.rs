@@ -17,6 +17,7 @@
 //! | `{root}/actions/commanded`, `{root}/actions/applied` | Scalars × 8 | per step |
 //! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
+//! | `{root}/gait/{leg}` | Scalars (the leg's row, 4 = front_left … 1 = right_back) while its foot touches the floor, `Clear` in swing; line coloured by the leg's damage | per step |
 //! | `{root}/latent/z` | Scalars × 32 | per step (encoder policies) |
 //! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point, large; episode every 5th step), coloured by triggered joints | with `probe.json` |
 //! | `{root}/latent/pca3`, `{root}/latent/pca3_trail` | Points3D, the same in the first three PCA axes | with `probe.json` |
@@ -187,12 +188,13 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
     let probe =
         TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"]));
     let events = TextLogView::new("Damage events").with_contents(paths(&["events"]));
+    let gait = TimeSeriesView::new("Gait: stance per leg").with_contents(paths(&["gait/**"]));
     Blueprint::new(
         Horizontal::new([
             Vertical::new([world, events.into()])
                 .with_row_shares([3.0, 1.0])
                 .into(),
-            Vertical::new([fatigue.into(), scale.into(), progress.into()]).into(),
+            Vertical::new([gait.into(), fatigue.into(), scale.into(), progress.into()]).into(),
             Vertical::new([
                 latent.into(),
                 rerun::blueprint::Tabs::new([pca.into(), pca3.into()]).into(),
@@ -238,6 +240,8 @@ pub struct AntLogger {
     pca_palette: Vec<rerun::Color>,
     /// Where this model's world is drawn, so side-by-side Ants do not overlap.
     world_offset: [f32; 3],
+    /// The colour each leg's gait line has been given (logged again only when it changes).
+    gait_colors: [Option<rerun::Color>; crate::env::N_LEGS],
 }
 
 /// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
@@ -303,6 +307,7 @@ impl AntLogger {
                 .map(|c| rerun::Color::from_rgb(c.0, c.1, c.2))
                 .collect(),
             world_offset: [0.0; 3],
+            gait_colors: [None; crate::env::N_LEGS],
         }
     }
 
@@ -474,6 +479,8 @@ impl AntLogger {
             self.rec
                 .log(self.path(entity).as_str(), &rerun::Clear::flat())?;
         }
+        self.rec
+            .log(self.path("gait").as_str(), &rerun::Clear::recursive())?;
         Ok(())
     }
 
@@ -557,6 +564,43 @@ impl AntLogger {
             self.path("actions/applied").as_str(),
             &scalars(&out.applied_action),
         )?;
+        // Gait diagram: a leg's row while its foot is on the floor, a break while it swings.
+        let contacts = env.foot_contacts();
+        for (leg, name) in env.leg_names().iter().enumerate() {
+            let path = self.path(&format!("gait/{name}"));
+            let joints = (0..N_ACTUATORS).filter(|&i| env.leg_of_actuator()[i] == leg);
+            let worst = joints
+                .map(|i| (damage.joint_state(i), damage.fatigue()[i]))
+                .max_by(|a, b| {
+                    let rank = |s: JointState| match s {
+                        JointState::Healthy => 0,
+                        JointState::Manual => 1,
+                        JointState::Triggered => 2,
+                    };
+                    (rank(a.0), a.1)
+                        .partial_cmp(&(rank(b.0), b.1))
+                        .unwrap_or(std::cmp::Ordering::Equal)
+                });
+            if let Some((state, fatigue)) = worst {
+                let c = color(damage_color(state, fatigue, self.threshold));
+                if self.gait_colors[leg] != Some(c) {
+                    self.rec.log(
+                        path.as_str(),
+                        &rerun::SeriesLines::new()
+                            .with_colors([c])
+                            .with_widths([10.0])
+                            .with_names([name.as_str()]),
+                    )?;
+                    self.gait_colors[leg] = Some(c);
+                }
+            }
+            if contacts[leg] {
+                let row = (crate::env::N_LEGS - leg) as f64;
+                self.rec.log(path.as_str(), &rerun::Scalars::single(row))?;
+            } else {
+                self.rec.log(path.as_str(), &rerun::Clear::flat())?;
+            }
+        }
         // Events since the last step, as text (the state changes are in the series above).
         for e in &damage.events()[self.logged_events..] {
             let (level, text) = match &e.kind {
