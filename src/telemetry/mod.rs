@@ -205,6 +205,15 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
         .with_column_shares([2.0, 1.2, 1.2]),
     )
     .with_auto_views(false)
+    // The views get the screen: the blueprint tree and the selection start collapsed.
+    .with_blueprint_panel(
+        rerun::blueprint::BlueprintPanel::new()
+            .with_state(rerun::blueprint::components::PanelState::Collapsed),
+    )
+    .with_selection_panel(
+        rerun::blueprint::SelectionPanel::new()
+            .with_state(rerun::blueprint::components::PanelState::Collapsed),
+    )
 }
 
 /// A capsule of the model: MuJoCo's capsule is centred on its frame, axis along local z.
