@@ -272,8 +272,9 @@ fn steps_with(chunks: &[Chunk], entity: &str, count: impl Fn(&Chunk) -> Vec<usiz
         .collect()
 }
 
-/// The gait diagram: each leg's entity holds its row exactly at the steps where MuJoCo's contact
-/// list (read here by geom name) has that leg's foot on the floor, and a Clear at the others.
+/// The gait diagram: each leg's state lane is a stance state exactly at the steps where MuJoCo's
+/// contact list (read here by geom name) has that leg's foot on the floor, and a gap at the others;
+/// states are logged only when they change.
 #[test]
 fn the_gait_diagram_follows_mujoco_foot_contacts() {
     let mut env = AntEnv::new(config(), SEED).unwrap();
@@ -312,30 +313,40 @@ fn the_gait_diagram_follows_mujoco_foot_contacts() {
     }
     let summary = record(options(Sink::Memory), &AtomicBool::new(false)).unwrap();
     let chunks = chunks(summary.storage.unwrap().take());
-    let scalars = rerun::Scalars::descriptor_scalars().component;
+    let state = rerun::StateChange::descriptor_state().component;
     let legs = [
         "front_left_leg",
         "front_right_leg",
         "back_leg",
         "right_back_leg",
     ];
+    let last_step = *stance.iter().flatten().max().unwrap_or(&0);
     let mut swing_seen = false;
     for (leg, name) in legs.iter().enumerate() {
         let path = format!("/ant/gait/{name}");
-        let rows = by_step(&chunks, &path, |c| {
-            c.iter_slices::<f64>(scalars).map(|s| s.to_vec()).collect()
+        // (step, stance?) at every change; a null or empty state is a swing.
+        let changes: Vec<(i64, bool)> = common::per_step(&chunks, &path, |c| {
+            c.iter_slices::<String>(state)
+                .map(|s| s.iter().any(|v| !v.to_string().is_empty()))
+                .collect()
         });
-        let logged: Vec<i64> = rows
-            .iter()
-            .filter(|(_, v)| !v.is_empty())
-            .map(|(t, _)| *t)
-            .collect();
-        assert_eq!(logged, stance[leg], "{path}");
+        assert!(!changes.is_empty(), "{path}: no state logged");
         assert!(
-            rows.values().flatten().all(|&v| v == (4 - leg) as f64),
-            "{path}: its row is {}",
-            4 - leg
+            changes.windows(2).all(|w| w[0].1 != w[1].1),
+            "{path}: a state logged twice in a row"
         );
+        // Forward-fill the changes over the episode's steps.
+        let mut on = false;
+        let mut logged = Vec::new();
+        for t in 1..=last_step.max(changes.last().map_or(0, |c| c.0)) {
+            if let Some(&(_, s)) = changes.iter().find(|(at, _)| *at == t) {
+                on = s;
+            }
+            if on && t <= STEPS as i64 {
+                logged.push(t);
+            }
+        }
+        assert_eq!(logged, stance[leg], "{path}");
         swing_seen |= logged.len() < STEPS;
     }
     assert!(

@@ -17,7 +17,7 @@
 //! | `{root}/actions/commanded`, `{root}/actions/applied` | Scalars × 8 | per step |
 //! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
-//! | `{root}/gait/{leg}` | Scalars (the leg's row, 4 = front_left … 1 = right_back) while its foot touches the floor, `Clear` in swing; line coloured by the leg's damage | per step |
+//! | `{root}/gait/{leg}` | StateChange: a stance state named by the leg's damage while its foot touches the floor, null (a gap) in swing; StateConfiguration (colours) static | on changes |
 //! | `{root}/latent/z` | Scalars × 32 | per step (encoder policies) |
 //! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point, large; episode every 5th step), coloured by triggered joints | with `probe.json` |
 //! | `{root}/latent/pca3`, `{root}/latent/pca3_trail` | Points3D, the same in the first three PCA axes | with `probe.json` |
@@ -43,6 +43,12 @@ pub use session::{
 pub const APP_ID: &str = "gaitscope";
 /// Log the trail (torso path, PCA path) every this many steps: bounded bytes per step.
 pub const TRAIL_EVERY: usize = 5;
+/// A foot's stance states in the gait diagram, by the worst state of its leg's two joints.
+pub const GAIT_STATES: [&str; 3] = [
+    "stance (healthy leg)",
+    "stance (triggered)",
+    "stance (manual)",
+];
 
 /// The time-series entities under a lane's root (what [`AntLogger::log_series_gap`] breaks).
 pub const SERIES_ENTITIES: [&str; 11] = [
@@ -188,13 +194,16 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
     let probe =
         TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"]));
     let events = TextLogView::new("Damage events").with_contents(paths(&["events"]));
-    let gait = TimeSeriesView::new("Gait: stance per leg").with_contents(paths(&["gait/**"]));
+    let gait = rerun::blueprint::StateTimelineView::new("Gait: stance per leg")
+        .with_contents(paths(&["gait/**"]));
     Blueprint::new(
         Horizontal::new([
             Vertical::new([world, events.into()])
                 .with_row_shares([3.0, 1.0])
                 .into(),
-            Vertical::new([gait.into(), fatigue.into(), scale.into(), progress.into()]).into(),
+            Vertical::new([gait.into(), fatigue.into(), scale.into(), progress.into()])
+                .with_row_shares([1.5, 1.0, 1.0, 1.0])
+                .into(),
             Vertical::new([
                 latent.into(),
                 rerun::blueprint::Tabs::new([pca.into(), pca3.into()]).into(),
@@ -249,8 +258,8 @@ pub struct AntLogger {
     pca_palette: Vec<rerun::Color>,
     /// Where this model's world is drawn, so side-by-side Ants do not overlap.
     world_offset: [f32; 3],
-    /// The colour each leg's gait line has been given (logged again only when it changes).
-    gait_colors: [Option<rerun::Color>; crate::env::N_LEGS],
+    /// Each leg's last logged gait state (`Some(None)`: swing), so only changes are logged.
+    gait_states: [Option<Option<&'static str>>; crate::env::N_LEGS],
 }
 
 /// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
@@ -316,7 +325,7 @@ impl AntLogger {
                 .map(|c| rerun::Color::from_rgb(c.0, c.1, c.2))
                 .collect(),
             world_offset: [0.0; 3],
-            gait_colors: [None; crate::env::N_LEGS],
+            gait_states: [None; crate::env::N_LEGS],
         }
     }
 
@@ -336,6 +345,20 @@ impl AntLogger {
 
     fn log_static(&mut self, env: &AntEnv) -> Result<(), TelemetryError> {
         let rec = &self.rec;
+        // Stance colours as the legs' damage colours: healthy, triggered, manual.
+        let stance_colors = [
+            damage_color(JointState::Healthy, 0.0, 1.0),
+            damage_color(JointState::Triggered, 0.0, 1.0),
+            damage_color(JointState::Manual, 0.0, 1.0),
+        ];
+        for name in env.leg_names() {
+            rec.log_static(
+                self.path(&format!("gait/{name}")).as_str(),
+                &rerun::StateConfiguration::new()
+                    .with_values(GAIT_STATES)
+                    .with_colors(stance_colors.map(color)),
+            )?;
+        }
         if self.world_offset != [0.0; 3] {
             rec.log_static(
                 self.path("world").as_str(),
@@ -483,13 +506,15 @@ impl AntLogger {
     /// Ends every time series of this lane at the current time: the viewer breaks a line at a
     /// `Clear`, so a lane that waits for the others (its episode ended early) shows a gap until
     /// its next episode instead of a straight line across steps it never ran.
-    pub fn log_series_gap(&self) -> Result<(), TelemetryError> {
+    pub fn log_series_gap(&mut self) -> Result<(), TelemetryError> {
         for entity in SERIES_ENTITIES {
             self.rec
                 .log(self.path(entity).as_str(), &rerun::Clear::flat())?;
         }
         self.rec
             .log(self.path("gait").as_str(), &rerun::Clear::recursive())?;
+        // The next logged state must go out even if it equals the one before the gap.
+        self.gait_states = [None; crate::env::N_LEGS];
         Ok(())
     }
 
@@ -573,41 +598,27 @@ impl AntLogger {
             self.path("actions/applied").as_str(),
             &scalars(&out.applied_action),
         )?;
-        // Gait diagram: a leg's row while its foot is on the floor, a break while it swings.
+        // Gait diagram: per leg a state lane, "stance" states named by the leg's damage while the
+        // foot is on the floor, a gap (null state) while it swings; logged on changes only.
         let contacts = env.foot_contacts();
         for (leg, name) in env.leg_names().iter().enumerate() {
-            let path = self.path(&format!("gait/{name}"));
-            let joints = (0..N_ACTUATORS).filter(|&i| env.leg_of_actuator()[i] == leg);
-            let worst = joints
-                .map(|i| (damage.joint_state(i), damage.fatigue()[i]))
-                .max_by(|a, b| {
-                    let rank = |s: JointState| match s {
-                        JointState::Healthy => 0,
-                        JointState::Manual => 1,
-                        JointState::Triggered => 2,
-                    };
-                    (rank(a.0), a.1)
-                        .partial_cmp(&(rank(b.0), b.1))
-                        .unwrap_or(std::cmp::Ordering::Equal)
-                });
-            if let Some((state, fatigue)) = worst {
-                let c = color(damage_color(state, fatigue, self.threshold));
-                if self.gait_colors[leg] != Some(c) {
-                    self.rec.log(
-                        path.as_str(),
-                        &rerun::SeriesLines::new()
-                            .with_colors([c])
-                            .with_widths([10.0])
-                            .with_names([name.as_str()]),
-                    )?;
-                    self.gait_colors[leg] = Some(c);
+            let state = contacts[leg].then(|| {
+                let joints = (0..N_ACTUATORS).filter(|&i| env.leg_of_actuator()[i] == leg);
+                let states: Vec<JointState> = joints.map(|i| damage.joint_state(i)).collect();
+                if states.contains(&JointState::Triggered) {
+                    GAIT_STATES[1]
+                } else if states.contains(&JointState::Manual) {
+                    GAIT_STATES[2]
+                } else {
+                    GAIT_STATES[0]
                 }
-            }
-            if contacts[leg] {
-                let row = (crate::env::N_LEGS - leg) as f64;
-                self.rec.log(path.as_str(), &rerun::Scalars::single(row))?;
-            } else {
-                self.rec.log(path.as_str(), &rerun::Clear::flat())?;
+            });
+            if self.gait_states[leg] != Some(state) {
+                self.rec.log(
+                    self.path(&format!("gait/{name}")).as_str(),
+                    &rerun::StateChange::new().with_state_opt([state]),
+                )?;
+                self.gait_states[leg] = Some(state);
             }
         }
         // Events since the last step, as text (the state changes are in the series above).

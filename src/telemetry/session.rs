@@ -324,7 +324,7 @@ impl Session {
         // A lane that ended while others run waits for them: its series stop here.
         if !self.is_over() {
             for i in ended {
-                let logger = &self.lanes[i].logger;
+                let logger = &mut self.lanes[i].logger;
                 logger.set_time(self.global_step + 1, episode);
                 logger.log_series_gap()?;
             }
