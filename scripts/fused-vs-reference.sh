@@ -42,7 +42,10 @@ python3 - "$runs" "$steps" >"$out/summary.md" <<'PY'
 import json, statistics, sys, pathlib
 runs, steps = pathlib.Path(sys.argv[1]), int(sys.argv[2])
 print(f"# Fused vs reference update: {steps:,}-step runs, seed 0\n")
-print("Episodes of the second half of each run (steps ≥ {:,}); steps/s over the whole run.\n".format(steps // 2))
+print("Episodes of the second half of each run (steps ≥ {:,}). steps/s: the run's wall clock, "
+      "which shared the machine with other work (speed is measured in docs/training.md, not here). "
+      "One seed per cell: these runs show whether either path fails to learn, not small differences."
+      "\n".format(steps // 2))
 print("| encoder | update | episodes | mean return | success | mean critic loss | final α | steps/s |")
 print("|---|---|---:|---:|---:|---:|---:|---:|")
 for encoder in ["none", "lstm", "mlp-window"]:
