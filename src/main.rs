@@ -91,8 +91,9 @@ struct RolloutArgs {
     /// One JSON object per episode instead of a text line.
     #[arg(long, conflicts_with = "init_state")]
     json: bool,
-    /// Replay: the starting state, {"qpos": [15], "qvel": [14]}.
-    #[arg(long, value_name = "FILE", requires = "actions")]
+    /// Replay (with --actions) or a --checkpoint's episode: the starting state,
+    /// {"qpos": [15], "qvel": [14]}.
+    #[arg(long, value_name = "FILE")]
     init_state: Option<PathBuf>,
     /// Replay: the actions, [[8 numbers], ...].
     #[arg(long, value_name = "FILE", requires = "init_state")]
@@ -102,7 +103,7 @@ struct RolloutArgs {
     #[arg(long)]
     jsonl: bool,
     /// Run this checkpoint's deterministic policy instead of a built-in one.
-    #[arg(long, value_name = "DIR", conflicts_with = "init_state")]
+    #[arg(long, value_name = "DIR", conflicts_with = "actions")]
     checkpoint: Option<PathBuf>,
     /// Fork each episode before step K: a second lane from the identical state, with --fork's
     /// edits applied, runs to its own end.
@@ -517,6 +518,9 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
     }
     let mut out = BufWriter::new(std::io::stdout().lock());
 
+    if args.init_state.is_some() && args.actions.is_none() && args.checkpoint.is_none() {
+        bail!("--init-state needs --actions (a replay) or --checkpoint (a policy from that state)");
+    }
     if let (Some(init_path), Some(actions_path)) = (&args.init_state, &args.actions) {
         let Some(condition) = args.condition else {
             bail!(
@@ -549,17 +553,41 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
             }),
             _ => None,
         };
-        for episode in 0..args.episodes {
+        let init = match &args.init_state {
+            Some(path) => {
+                let Some(condition) = args.condition else {
+                    bail!(
+                        "--init-state needs --condition healthy|mild|severe (the damage scale must be explicit)"
+                    );
+                };
+                Some((rollout::read_init_state(path)?, condition))
+            }
+            None => None,
+        };
+        // From a given state there is one episode to run (--episodes conflicts with it).
+        let episodes = if init.is_some() { 1 } else { args.episodes };
+        for episode in 0..episodes {
             let seed = args.seed.wrapping_add(episode as u64);
-            let summary =
-                rollout::run_policy_episode(&policy, &config, episode, seed, fork.as_ref(), |r| {
+            let start = match &init {
+                Some((state, condition)) => rollout::Start::State(state, *condition),
+                None => rollout::Start::Reset,
+            };
+            let summary = rollout::run_policy_episode(
+                &policy,
+                &config,
+                episode,
+                seed,
+                start,
+                fork.as_ref(),
+                |r| {
                     if args.jsonl {
                         serde_json::to_writer(&mut out, r)?;
                         writeln!(out)?;
                     }
                     Ok(())
-                })
-                .with_context(|| format!("episode {episode} (seed {seed})"))?;
+                },
+            )
+            .with_context(|| format!("episode {episode} (seed {seed})"))?;
             if args.json {
                 serde_json::to_writer(&mut out, &summary)?;
                 writeln!(out)?;

@@ -344,14 +344,24 @@ impl PolicyLane {
     }
 }
 
-/// A deterministic episode of `policy` from the reset with `seed`, each step's line to `sink`
-/// (lane `main`), then the fork's steps from `fork.at` on (lane `fork`) if asked. Returns the
-/// main episode's summary.
+/// Where a policy episode starts: the reset with the episode's seed, or a given state.
+#[derive(Debug, Clone, Copy)]
+pub enum Start<'a> {
+    Reset,
+    /// From `init` (set, then `mj_forward`, as replay does) under `condition`.
+    State(&'a InitState, Condition),
+}
+
+/// A deterministic episode of `policy` from `start` (the env seeded with `seed`), each step's
+/// line to `sink` (lane `main`), then the fork's steps from `fork.at` on (lane `fork`) if asked.
+/// Returns the main episode's summary.
+#[allow(clippy::too_many_arguments)]
 pub fn run_policy_episode(
     policy: &crate::policy::Policy,
     config: &crate::config::GaitConfig,
     episode: usize,
     seed: u64,
+    start: Start,
     fork: Option<&Fork>,
     mut sink: impl FnMut(&LaneRecord) -> std::io::Result<()>,
 ) -> Result<EpisodeSummary, ReplayError> {
@@ -362,7 +372,10 @@ pub fn run_policy_episode(
             env.damage().resolve(&edit.target).map_err(EnvError::from)?;
         }
     }
-    let obs = env.reset_with_seed(seed);
+    let obs = match start {
+        Start::Reset => env.reset_with_seed(seed),
+        Start::State(init, condition) => env.reset_to_state(&init.qpos, &init.qvel, condition)?,
+    };
     let mut lane = PolicyLane {
         env,
         window: crate::window::ContextWindow::new(policy.net().context_len),

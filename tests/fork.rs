@@ -129,3 +129,60 @@ fn bad_forks_are_clear_errors() {
         assert!(err.contains(message), "{args:?}: {err}");
     }
 }
+
+/// A policy episode from a given state is the replay of its own actions from that state: the
+/// same records, step for step.
+#[test]
+fn a_policy_from_a_state_matches_the_replay_of_its_actions() {
+    let tmp = tempfile::tempdir().unwrap();
+    let init = tmp.path().join("init.json");
+    // Ant-v4's standing pose with a small lean and push.
+    let mut qpos = vec![0.0, 0.0, 0.75, 1.0, 0.0, 0.0, 0.0];
+    qpos.extend(
+        [0.0, 1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0]
+            .iter()
+            .map(|v| v * 0.1),
+    );
+    let qvel: Vec<f64> = (0..14).map(|i| 0.05 * (i as f64 - 7.0)).collect();
+    std::fs::write(
+        &init,
+        serde_json::json!({"qpos": qpos, "qvel": qvel}).to_string(),
+    )
+    .unwrap();
+    let run = |args: &[&str]| -> Vec<Value> {
+        let out = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+            .args([
+                "rollout",
+                "--condition",
+                "mild",
+                "--max-steps",
+                "60",
+                "--jsonl",
+            ])
+            .args(["--init-state", init.to_str().unwrap()])
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
+    };
+    let policy = run(&["--checkpoint", CHECKPOINTS[0]]);
+    assert!(policy.len() > 10);
+    let actions: Vec<Value> = policy.iter().map(|r| r["action"].clone()).collect();
+    let actions_file = tmp.path().join("actions.json");
+    std::fs::write(&actions_file, Value::Array(actions).to_string()).unwrap();
+    let replay = run(&["--actions", actions_file.to_str().unwrap()]);
+    assert_eq!(replay.len(), policy.len());
+    for (p, r) in policy.iter().zip(&replay) {
+        let mut p = without_lane(p);
+        p.as_object_mut().unwrap().remove("action");
+        assert_eq!(&p, r);
+    }
+}
