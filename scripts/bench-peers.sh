@@ -4,19 +4,12 @@
 # and one thread, one after another, with this repo's own background training paused. Prints one
 # table: env steps/s with one SAC update per step, and gaitscope's ratio to each peer.
 #   scripts/bench-peers.sh [STEPS]     (default 1000 learning steps after 1000 random ones)
-# Builds its own venv (.deps/peers-venv, ~5 GB with torch) on first use; not part of `make test`.
+# Uses scripts/peers-venv.sh (built on first use, ~5 GB with torch); not part of `make test`.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 steps="${1:-1000}"
 core="${BENCH_CORE:-1}"
-venv="$root/.deps/peers-venv"
-if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c 'import sbx, stable_baselines3' 2>/dev/null; then
-  echo "bench-peers: building $venv (stable-baselines3, sbx-rl, torch, jax, gymnasium, mujoco)"
-  python3 -m venv "$venv"
-  "$venv/bin/pip" install --quiet "stable-baselines3==2.9.2" "sbx-rl==0.28.0" "gymnasium==1.4.0" \
-    "mujoco==3.17.0" "torch==2.15.0" "jax==0.10.2" "jaxlib==0.10.2" "flax==0.12.8" "optax==0.2.8" \
-    "numpy==2.4.6" "imageio==2.38.1" "packaging==26.4"
-fi
+python=$("$root/scripts/peers-venv.sh")
 (cd "$root" && ${CARGO:-cargo} build --release --quiet)
 bin="${CARGO_TARGET_DIR:-$root/target}/release/gaitscope"
 
@@ -27,7 +20,7 @@ trap '"$root/scripts/seed-runs.sh" cont 2>/dev/null || true' EXIT
 results=$(mktemp)
 run_peer() {
   echo "bench-peers: $1 $2" >&2
-  taskset -c "$core" "$venv/bin/python" "$root/bench/peers/train_speed.py" \
+  taskset -c "$core" "$python" "$root/bench/peers/train_speed.py" \
     --lib "$1" --model "$2" --steps "$steps" >>"$results"
 }
 run_peer sb3 none
@@ -40,7 +33,7 @@ taskset -c "$core" "$bin" bench train --steps "$steps" --json >>"$results"
 echo "bench-peers: gaitscope bench train --threads 2" >&2
 "$bin" bench train --steps "$steps" --threads 2 --json >>"$results"
 
-"$venv/bin/python" - "$results" "$steps" <<'PY'
+"$python" - "$results" "$steps" <<'PY'
 import json, platform, subprocess, sys, datetime
 rows = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
 peers = {r["peer"]: r for r in rows if "peer" in r}

@@ -15,6 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use std::collections::BTreeMap;
 
+use super::file::rows;
 use super::linear::{LinearProbe, Scores, scores};
 use super::{ProbeError, ProbeStep};
 
@@ -172,13 +173,6 @@ pub struct ProbeCv {
     pub latency: Vec<LatencyPoint>,
 }
 
-fn matrix(rows: &[&ProbeStep], f: impl Fn(&ProbeStep) -> Vec<f64>) -> Array2<f64> {
-    let data: Vec<Vec<f64>> = rows.iter().map(|s| f(s)).collect();
-    let cols = data.first().map_or(0, Vec::len);
-    Array2::from_shape_vec((data.len(), cols), data.into_iter().flatten().collect())
-        .unwrap_or_else(|_| Array2::zeros((0, cols)))
-}
-
 /// Runs the protocol on one run's recorded steps.
 pub fn probe_cv(
     model: &str,
@@ -200,24 +194,24 @@ pub fn probe_cv(
     let kept: Vec<&ProbeStep> = steps.iter().filter(|s| !s.window.is_empty()).collect();
     let kept_after: Vec<&ProbeStep> = kept.iter().copied().filter(after_trigger).collect();
     let mut condition_rows = Vec::new();
-    for (subset, rows) in [
+    for (subset, steps_in) in [
         ("all steps", &kept),
         ("after the first trigger", &kept_after),
     ] {
-        let y: Vec<usize> = condition(rows);
+        let y: Vec<usize> = condition(steps_in);
         for (features, x) in [
-            ("z", matrix(rows, z)),
-            ("raw obs", matrix(rows, obs)),
-            ("raw window", matrix(rows, window)),
+            ("z", rows(steps_in, z)),
+            ("raw obs", rows(steps_in, obs)),
+            ("raw window", rows(steps_in, window)),
         ] {
             let name = format!("condition from {features}, {subset}");
-            condition_rows.push(cross_validate(&name, &x, &y, &fold(rows), k)?.0);
+            condition_rows.push(cross_validate(&name, &x, &y, &fold(steps_in), k)?.0);
         }
     }
 
     // Per joint and latency: z on every step.
     let all: Vec<&ProbeStep> = steps.iter().collect();
-    let (z_all, folds_all) = (matrix(&all, z), fold(&all));
+    let (z_all, folds_all) = (rows(&all, z), fold(&all));
     let mut joints = Vec::new();
     for (i, name) in joint_names.iter().enumerate() {
         let y: Vec<usize> = all.iter().map(|s| usize::from(s.damaged[i])).collect();

@@ -62,7 +62,8 @@ impl ProbeFile {
     }
 }
 
-fn rows(steps: &[&ProbeStep], f: impl Fn(&ProbeStep) -> Vec<f64>) -> Array2<f64> {
+/// One row of features per step.
+pub(super) fn rows(steps: &[&ProbeStep], f: impl Fn(&ProbeStep) -> Vec<f64>) -> Array2<f64> {
     let data: Vec<Vec<f64>> = steps.iter().map(|s| f(s)).collect();
     let cols = data.first().map_or(0, Vec::len);
     Array2::from_shape_vec((data.len(), cols), data.into_iter().flatten().collect())
