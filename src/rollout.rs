@@ -326,21 +326,39 @@ struct PolicyLane {
 }
 
 impl PolicyLane {
-    /// One deterministic policy step.
-    fn step(
+    /// Deterministic policy steps to the end of the episode, each one's line to `sink` as lane
+    /// `name`; `before_step` sees the lane before every step. Returns the last step and the
+    /// episode's return over the steps run here.
+    fn run(
         &mut self,
         policy: &crate::policy::Policy,
-    ) -> Result<(StepOutcome, Action), ReplayError> {
-        let decision = policy.act_one(
-            &self.obs,
-            &self.window,
-            crate::policy::ActionMode::Deterministic,
-            None,
-        )?;
-        let out = self.env.step(&decision.action)?;
-        self.window.push(&self.obs, &decision.action);
-        self.obs = out.obs;
-        Ok((out.clone(), out.commanded_action))
+        name: &'static str,
+        sink: &mut impl FnMut(&LaneRecord) -> std::io::Result<()>,
+        mut before_step: impl FnMut(&PolicyLane),
+    ) -> Result<(StepOutcome, f64), ReplayError> {
+        let mut episode_return = 0.0;
+        loop {
+            before_step(self);
+            let decision = policy.act_one(
+                &self.obs,
+                &self.window,
+                crate::policy::ActionMode::Deterministic,
+                None,
+            )?;
+            let out = self.env.step(&decision.action)?;
+            self.window.push(&self.obs, &decision.action);
+            self.obs = out.obs;
+            episode_return += out.reward.total;
+            sink(&LaneRecord {
+                lane: name,
+                record: StepRecord::capture(&self.env, &out),
+                action: out.commanded_action,
+            })
+            .map_err(ReplayError::Write)?;
+            if out.done() {
+                return Ok((out, episode_return));
+            }
+        }
     }
 }
 
@@ -382,26 +400,13 @@ pub fn run_policy_episode(
         obs,
     };
     let mut branch = None;
-    let mut episode_return = 0.0;
-    let last = loop {
+    let (last, episode_return) = lane.run(policy, "main", &mut sink, |lane| {
         if let Some(f) = fork
             && lane.env.steps() == f.at
         {
             branch = Some((lane.env.snapshot(), lane.window.clone(), lane.obs));
         }
-        let (out, action) = lane.step(policy)?;
-        episode_return += out.reward.total;
-        let record = StepRecord::capture(&lane.env, &out);
-        sink(&LaneRecord {
-            lane: "main",
-            record,
-            action,
-        })
-        .map_err(ReplayError::Write)?;
-        if out.done() {
-            break out;
-        }
-    };
+    })?;
     let summary = summarize(&lane.env, episode, seed, &last, episode_return);
     if let Some(f) = fork {
         let Some((snapshot, window, obs)) = branch else {
@@ -416,19 +421,7 @@ pub fn run_policy_episode(
             env.apply_edit(edit)?;
         }
         let mut fork_lane = PolicyLane { env, window, obs };
-        loop {
-            let (out, action) = fork_lane.step(policy)?;
-            let record = StepRecord::capture(&fork_lane.env, &out);
-            sink(&LaneRecord {
-                lane: "fork",
-                record,
-                action,
-            })
-            .map_err(ReplayError::Write)?;
-            if out.done() {
-                break;
-            }
-        }
+        fork_lane.run(policy, "fork", &mut sink, |_| {})?;
     }
     Ok(summary)
 }

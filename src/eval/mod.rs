@@ -292,6 +292,20 @@ pub fn run_lockstep(
     Ok(records.into_iter().flatten().collect())
 }
 
+/// One model's episodes under one condition, in eval-seed order (the order pairs are made in).
+pub(crate) fn episodes_of<'a>(
+    episodes: &'a [EpisodeRecord],
+    model: &str,
+    condition: Condition,
+) -> Vec<&'a EpisodeRecord> {
+    let mut v: Vec<&EpisodeRecord> = episodes
+        .iter()
+        .filter(|e| e.model == model && e.condition == condition)
+        .collect();
+    v.sort_by_key(|e| e.seed);
+    v
+}
+
 fn summarize(
     episodes: Vec<EpisodeRecord>,
     opts: &EvalOptions,
@@ -304,14 +318,7 @@ fn summarize(
             models.push((e.model.clone(), e.encoder));
         }
     }
-    let cell = |model: &str, condition: Condition| -> Vec<&EpisodeRecord> {
-        let mut v: Vec<&EpisodeRecord> = episodes
-            .iter()
-            .filter(|e| e.model == model && e.condition == condition)
-            .collect();
-        v.sort_by_key(|e| e.episode);
-        v
-    };
+    let cell = |model: &str, condition: Condition| episodes_of(&episodes, model, condition);
     let mean = |v: &[f64]| {
         if v.is_empty() {
             f64::NAN

@@ -11,7 +11,7 @@ use serde::Serialize;
 use std::collections::BTreeMap;
 
 use super::stats::{McNemar, Rate, mcnemar_counts, recovery_fraction};
-use super::{EpisodeRecord, RecoveryFraction, SUCCESS_BUDGETS};
+use super::{EpisodeRecord, RecoveryFraction, SUCCESS_BUDGETS, episodes_of};
 use crate::damage::Condition;
 use crate::policy::EncoderKind;
 
@@ -285,14 +285,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> Acr
     for g in &mut groups {
         g.2.sort();
     }
-    let run_episodes = |model: &str, condition: Condition| -> Vec<&EpisodeRecord> {
-        let mut v: Vec<&EpisodeRecord> = episodes
-            .iter()
-            .filter(|e| e.model == model && e.condition == condition)
-            .collect();
-        v.sort_by_key(|e| e.seed);
-        v
-    };
+    let run_episodes = |model: &str, condition: Condition| episodes_of(episodes, model, condition);
     let success_rate = |eps: &[&EpisodeRecord], budget: usize| {
         Rate::new(
             eps.iter().filter(|e| e.success_within(budget)).count(),
@@ -341,14 +334,8 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> Acr
                     (b, interval)
                 })
                 .collect();
-            let mut failure_modes = FailureCounts::default();
-            for c in &seed_cells {
-                let f = c.failure_modes;
-                failure_modes.success += f.success;
-                failure_modes.terminated_before_damage += f.terminated_before_damage;
-                failure_modes.terminated_after_damage += f.terminated_after_damage;
-                failure_modes.timed_out += f.timed_out;
-            }
+            let failure_modes =
+                FailureCounts::of(runs.iter().flat_map(|(_, m)| run_episodes(m, condition)));
             cells.push(GroupCell {
                 group: group.clone(),
                 encoder: *encoder,

@@ -16,7 +16,7 @@ use serde::Serialize;
 use std::collections::BTreeMap;
 
 use super::file::rows;
-use super::linear::{LinearProbe, Scores, scores};
+use super::linear::{LinearProbe, Scores, majority_class, scores};
 use super::{ProbeError, ProbeStep};
 
 /// Steps since the first trigger covered by the latency curve.
@@ -114,14 +114,7 @@ pub fn cross_validate(
         for (&i, &p) in test.iter().zip(&test_pred) {
             predicted[i] = p;
         }
-        let mut counts = BTreeMap::new();
-        for &c in &train_y {
-            *counts.entry(c).or_insert(0usize) += 1;
-        }
-        let most = counts
-            .iter()
-            .max_by_key(|(_, n)| **n)
-            .map_or(0, |(c, _)| *c);
+        let most = majority_class(&train_y);
         folds.push(scores(&test_y, &predicted_of(&test, &predicted)));
         majority.push(scores(&test_y, &vec![most; test_y.len()]).accuracy);
     }

@@ -210,6 +210,18 @@ pub struct ProbeResult {
     pub majority: Scores,
 }
 
+/// The most common label (the smallest of a tie; 0 for none): the baseline a probe must beat.
+pub(super) fn majority_class(labels: &[usize]) -> usize {
+    let mut counts = std::collections::BTreeMap::new();
+    for &c in labels {
+        *counts.entry(c).or_insert(0usize) += 1;
+    }
+    counts
+        .iter()
+        .max_by_key(|(_, n)| **n)
+        .map_or(0, |(c, _)| *c)
+}
+
 pub(super) fn evaluate_probe(
     name: &str,
     train_x: &Array2<f64>,
@@ -223,18 +235,11 @@ pub(super) fn evaluate_probe(
         .into_iter()
         .map(|r| probe.predict(r.as_slice().unwrap_or(&r.to_vec())))
         .collect();
-    let mut counts = std::collections::BTreeMap::new();
-    for &c in train_y {
-        *counts.entry(c).or_insert(0usize) += 1;
-    }
-    let majority_class = counts
-        .iter()
-        .max_by_key(|(_, n)| **n)
-        .map_or(0, |(c, _)| *c);
+    let majority = majority_class(train_y);
     let result = ProbeResult {
         name: name.to_string(),
         test: scores(test_y, &predicted),
-        majority: scores(test_y, &vec![majority_class; test_y.len()]),
+        majority: scores(test_y, &vec![majority; test_y.len()]),
     };
     Ok((result, probe))
 }
