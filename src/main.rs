@@ -7,6 +7,7 @@ use std::path::PathBuf;
 
 use gaitscope::bench::bench_env;
 use gaitscope::policy::EncoderKind;
+use gaitscope::policy::sb3::{self, ImportEncoder};
 use gaitscope::rollout::{self, BuiltinPolicy};
 use gaitscope::train::{self, sac::UpdatePath};
 use gaitscope::{AntEnv, Condition, ConditionChoice, GaitConfig};
@@ -42,6 +43,8 @@ enum Command {
     Probe(ProbeArgs),
     /// Training curves (return, success, losses, α, triggers) from runs' metrics.jsonl, as a PNG.
     Curves(CurvesArgs),
+    /// Convert a Stable-Baselines3 SAC archive (model.zip) into a gaitscope checkpoint.
+    ImportSb3(ImportSb3Args),
     /// Measure performance.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -247,6 +250,18 @@ struct CurvesArgs {
 }
 
 #[derive(Args)]
+struct ImportSb3Args {
+    /// The SB3 archive, as `model.save()` wrote it.
+    model: PathBuf,
+    /// The checkpoint folder to create (must not exist).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// The encoder: auto picks none for a 29-d observation, lstm for the 621-d folded window.
+    #[arg(long, value_enum, default_value_t = ImportEncoder::Auto)]
+    encoder: ImportEncoder,
+}
+
+#[derive(Args)]
 struct ViewArgs {
     /// The recording to open.
     file: PathBuf,
@@ -387,6 +402,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Rollout(args) => rollout_command(args),
         Command::Train(args) => train_command(args),
         Command::Eval(args) => eval_command(args),
+        Command::ImportSb3(args) => import_sb3_command(args),
         Command::Record(args) => record_command(args),
         Command::Live(args) => live_command(args),
         Command::Curves(args) => {
@@ -868,6 +884,29 @@ fn view_command(args: ViewArgs) -> Result<()> {
     viewer::require_display("gaitscope view")?;
     let path = viewer::find_viewer(args.viewer.as_deref())?;
     viewer::view_recording(&path, &args.file)?;
+    Ok(())
+}
+
+fn import_sb3_command(args: ImportSb3Args) -> Result<()> {
+    let summary = sb3::import_sb3(&args.model, &args.out, args.encoder)?;
+    let net = &summary.net;
+    println!(
+        "imported {} (Stable-Baselines3 {}, {} steps) → {}",
+        summary.provenance.file,
+        summary.provenance.version,
+        summary.num_timesteps,
+        args.out.display()
+    );
+    println!(
+        "  encoder {}{}, hidden {:?}, z {}, α {:.4}, {} tensors, sha256 {}",
+        net.encoder,
+        if net.share_encoder { " (shared)" } else { "" },
+        net.hidden,
+        net.z_dim,
+        summary.alpha,
+        summary.tensors,
+        &summary.provenance.sha256[..12]
+    );
     Ok(())
 }
 

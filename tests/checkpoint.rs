@@ -25,6 +25,7 @@ fn record() -> TrainingRecord {
         steps_done: 1234,
         episodes_done: 7,
         wall_time_s: 1.5,
+        imported_from: None,
     }
 }
 

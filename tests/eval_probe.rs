@@ -21,6 +21,7 @@ fn save_model(dir: &Path, encoder: EncoderKind, seed: u64) {
         steps_done: 0,
         episodes_done: 0,
         wall_time_s: 0.0,
+        imported_from: None,
     };
     model.save(dir, &record).unwrap();
 }

@@ -34,6 +34,7 @@ fn checkpoint(dir: &Path) {
         steps_done: 0,
         episodes_done: 0,
         wall_time_s: 0.0,
+        imported_from: None,
     };
     model.save(dir, &record).unwrap();
 }

@@ -33,6 +33,23 @@ pub struct CheckpointMeta {
     pub tensors: BTreeMap<String, Vec<usize>>,
     /// CRC-32 of `model.safetensors`.
     pub model_crc32: u32,
+    /// Where an imported model came from (absent for models gaitscope trained).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imported_from: Option<Provenance>,
+}
+
+/// The origin of an imported checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Provenance {
+    /// The framework, e.g. `stable-baselines3`.
+    pub source: String,
+    /// File name of the imported archive.
+    pub file: String,
+    /// The framework's version, as the archive records it.
+    pub version: String,
+    /// SHA-256 of the archive, hex.
+    pub sha256: String,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -103,6 +120,7 @@ pub struct TrainingRecord {
     pub steps_done: u64,
     pub episodes_done: u64,
     pub wall_time_s: f64,
+    pub imported_from: Option<Provenance>,
 }
 
 /// Writes `bytes` to `path` atomically: a sibling temp file, fsync, rename.
@@ -255,6 +273,7 @@ impl SacModel {
             wall_time_s: record.wall_time_s,
             tensors: self.tensor_shapes(),
             model_crc32: crc32fast::hash(&bytes),
+            imported_from: record.imported_from.clone(),
         };
         write_atomic(&dir.join(MODEL_FILE), &bytes)?;
         let json = serde_json::to_vec_pretty(&meta).map_err(|e| CheckpointError::BadMeta {

@@ -421,6 +421,7 @@ fn save_run(
         steps_done: state.steps_done,
         episodes_done: state.episodes_done,
         wall_time_s: state.wall_time_s,
+        imported_from: None,
     };
     learner.sync_model()?;
     // Optimiser state and replay first, JSON state last: a crash in between leaves the previous
