@@ -362,6 +362,7 @@ pub fn bench_record(
             episodes,
             seed: 0,
             sink: Sink::File(path.clone()),
+            fork: None,
         },
         &std::sync::atomic::AtomicBool::new(false),
     )?;
@@ -429,6 +430,7 @@ pub fn bench_live(
                 step_limit: 500,
                 mode: crate::policy::ActionMode::Deterministic,
                 paused: false,
+                breakpoints: Vec::new(),
                 config: crate::GaitConfig::default(),
             };
             let sim = SimHandle::spawn(rec, setup)?;

@@ -191,6 +191,13 @@ struct RecordArgs {
     /// The .rrd file to write.
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
+    /// Fork the (first) checkpoint's episode before step K: a second lane (`fork`, drawn beside
+    /// it) from the identical state with --fork's edits.
+    #[arg(long, value_name = "K", requires_all = ["checkpoint", "fork"])]
+    fork_at: Option<usize>,
+    /// The fork's damage edits, as for `rollout --fork`.
+    #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
+    fork: Option<String>,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -223,6 +230,10 @@ struct LiveArgs {
     /// Start paused (step with the panel's Step button).
     #[arg(long)]
     paused: bool,
+    /// Pause after any step where one of these holds, comma-separated: trigger, trigger:JOINT,
+    /// override, termination, success, probe-flip (needs probe.json), step:N.
+    #[arg(long, value_name = "LIST")]
+    break_on: Option<String>,
     /// Stream to a viewer that is already running, e.g. rerun+http://HOST:9876/proxy.
     #[arg(long, value_name = "URL")]
     connect: Option<String>,
@@ -729,6 +740,13 @@ fn record_command(args: RecordArgs) -> Result<()> {
         episodes: args.episodes,
         seed: args.seed,
         sink: Sink::File(args.out.clone()),
+        fork: match (args.fork_at, &args.fork) {
+            (Some(at), Some(edits)) => Some(rollout::Fork {
+                at,
+                edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
+            }),
+            _ => None,
+        },
     };
     let summary = telemetry::record(opts, &stop)?;
     let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
@@ -756,7 +774,6 @@ fn live_command(args: LiveArgs) -> Result<()> {
             "this gaitscope was built without the `live` feature (the control panel); rebuild              with default features, or use `gaitscope record` to write a .rrd headlessly"
         );
     }
-    viewer::require_display("gaitscope live")?;
     if let Some(secs) = args.exit_after
         && !(secs.is_finite() && secs > 0.0)
     {
@@ -781,10 +798,14 @@ fn live_command(args: LiveArgs) -> Result<()> {
             gaitscope::policy::ActionMode::Deterministic
         },
         paused: args.paused,
+        breakpoints: gaitscope::app::Breakpoint::parse_list(
+            args.break_on.as_deref().unwrap_or_default(),
+        )?,
         config,
     };
-    // Check what can be checked before any window opens.
+    // Check what can be checked before any window opens: the input first, then the display.
     setup.validate()?;
+    viewer::require_display("gaitscope live")?;
     let url = match &args.connect {
         Some(url) => {
             viewer::check_reachable(url)?;

@@ -49,6 +49,7 @@ fn setup(dir: &Path, condition: LiveCondition) -> LiveSetup {
         step_limit: 200,
         mode: ActionMode::Deterministic,
         paused: true,
+        breakpoints: Vec::new(),
         config: GaitConfig::default(),
     }
 }
@@ -334,7 +335,7 @@ mod panel {
     fn harness(sim: &SimHandle) -> Harness<'static, Panel> {
         let panel = Panel::new(sim.link(), Vec::new());
         Harness::builder()
-            .with_size([520.0, 900.0])
+            .with_size([560.0, 1300.0])
             .build_ui_state(|ui, panel: &mut Panel| panel.ui(ui), panel)
     }
 
@@ -373,6 +374,48 @@ mod panel {
         ui.run();
         let s = sim.wait_for(WAIT, |s| s.lanes[0].states[3] == JointState::Healthy);
         assert_eq!(s.lanes[0].scale[3], 1.0);
+        sim.shutdown().unwrap();
+    }
+
+    #[test]
+    fn break_on_fork_and_rewind_controls_drive_the_sim() {
+        use gaitscope::app::Breakpoint;
+        let (_dir, sim, _storage) = started(LiveCondition::Severe);
+        let mut ui = harness(&sim);
+        ui.run();
+        // Break on: a checkbox per kind; probe-flip is off without a probe.json.
+        ui.get_by_label("trigger").click();
+        ui.run();
+        let s = sim.wait_for(WAIT, |s| !s.breakpoints.is_empty());
+        assert_eq!(s.breakpoints, [Breakpoint::Trigger(None)]);
+        assert!(!s.has_probe);
+        // Three steps, then fork with the field's default edit (heal:all).
+        for k in 1..=3 {
+            ui.get_by_label("Step").click();
+            ui.run();
+            assert_eq!(sim.wait_for(WAIT, |s| s.global_step == k).global_step, k);
+        }
+        ui.get_by_label("Fork here").click();
+        ui.run();
+        let s = sim.wait_for(WAIT, |s| s.lanes.len() == 2);
+        assert_eq!(s.lanes[1].root, "fork");
+        assert!(
+            s.lanes[1]
+                .fork_of
+                .as_deref()
+                .unwrap()
+                .contains("at step 3: heal:all")
+        );
+        ui.run();
+        ui.get_by_label("End fork").click();
+        ui.run();
+        assert_eq!(sim.wait_for(WAIT, |s| s.lanes.len() == 1).lanes.len(), 1);
+        // Rewind with the slider at 0: back to the episode's start, a new branch.
+        ui.run();
+        ui.get_by_label("Rewind").click();
+        ui.run();
+        let s = sim.wait_for(WAIT, |s| s.branches == 1);
+        assert_eq!((s.lanes[0].step, s.branches), (0, 1));
         sim.shutdown().unwrap();
     }
 

@@ -9,12 +9,14 @@
 //! The panel never blocks on physics: it sends commands over a channel and reads the latest
 //! snapshot. The sim thread runs the same [`Session`] loop as `gaitscope record`.
 
+pub mod breakpoint;
 mod sim;
 pub mod viewer;
 
 #[cfg(feature = "live")]
 pub mod panel;
 
+pub use breakpoint::{BreakHit, Breakpoint, BreakpointError};
 pub use sim::{LaneView, LiveSetup, SimHandle, SimReport, Snapshot, SpeedReport};
 
 use std::fmt;
@@ -129,6 +131,14 @@ pub enum Command {
     },
     /// Run the second model side by side (needs one loaded), or stop doing so.
     SetCompare(bool),
+    /// Pause after any step where one of these holds (replaces the list; empty: none).
+    SetBreakpoints(Vec<Breakpoint>),
+    /// Go back to the state after this many steps of the current episode (a new branch).
+    Rewind(usize),
+    /// Start a counterfactual lane of the main model from the current state with these edits.
+    Fork(Vec<crate::damage::DamageEdit>),
+    /// Stop the fork lane.
+    EndFork,
     /// Stop the simulation thread.
     Quit,
 }
@@ -161,6 +171,10 @@ pub enum LiveError {
     BadSpeed(f64),
     #[error("the step limit must be at least 1")]
     BadStepLimit,
+    #[error(transparent)]
+    Breakpoint(#[from] BreakpointError),
+    #[error(transparent)]
+    Rewind(#[from] crate::telemetry::RewindError),
     #[error("the simulation thread stopped unexpectedly")]
     SimThreadPanicked,
     #[error("starting the simulation thread: {0}")]

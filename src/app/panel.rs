@@ -8,7 +8,9 @@ use std::time::{Duration, Instant};
 
 use eframe::egui::{self, Color32, RichText};
 
+use super::breakpoint::{Breakpoint, format_list};
 use super::{Command, LiveCondition, MAX_SPEED, MIN_SPEED, PanelStats, SimHandle, Slot, Snapshot};
+use crate::damage::DamageEdit;
 use crate::damage::{JointOverride, JointState, N_ACTUATORS};
 use crate::policy::ActionMode;
 
@@ -53,17 +55,31 @@ pub struct Panel {
     folder: String,
     /// Set when the sim thread is gone (commands can no longer be delivered).
     disconnected: bool,
+    /// The "break on" list field (the `--break-on` syntax) and its parse error.
+    break_text: String,
+    break_error: Option<String>,
+    /// The step to rewind to.
+    rewind_to: usize,
+    /// The fork's edits field (the `--fork` syntax) and its parse error.
+    fork_text: String,
+    fork_error: Option<String>,
 }
 
 impl Panel {
     pub fn new(link: SimLink, checkpoints: Vec<PathBuf>) -> Self {
-        let view = (link.read)();
+        let view: Snapshot = (link.read)();
+        let break_text = format_list(&view.breakpoints);
         Self {
             link,
             view,
             checkpoints,
             folder: String::new(),
             disconnected: false,
+            break_text,
+            break_error: None,
+            rewind_to: 0,
+            fork_text: "heal:all".into(),
+            fork_error: None,
         }
     }
 
@@ -96,6 +112,8 @@ impl Panel {
         self.episode_section(ui);
         ui.separator();
         self.joints_section(ui);
+        ui.separator();
+        self.debugger_section(ui);
         ui.separator();
         self.readouts(ui);
         if let Some(message) = &self.view.message {
@@ -305,6 +323,134 @@ impl Panel {
             });
     }
 
+    /// Breakpoints, time travel and forks.
+    fn debugger_section(&mut self, ui: &mut egui::Ui) {
+        let v = self.view.clone();
+        ui.label(RichText::new("Break on").strong());
+        ui.horizontal_wrapped(|ui| {
+            let kinds = [
+                (Breakpoint::Trigger(None), "trigger", true),
+                (Breakpoint::Override, "override", true),
+                (Breakpoint::Termination, "termination", true),
+                (Breakpoint::Success, "success", true),
+                (Breakpoint::ProbeFlip, "probe-flip", v.has_probe),
+            ];
+            for (kind, label, enabled) in kinds {
+                let mut on = v.breakpoints.contains(&kind);
+                let hint = if enabled {
+                    "pause after the step where this happens"
+                } else {
+                    "needs a probe.json beside the checkpoint (gaitscope probe)"
+                };
+                if ui
+                    .add_enabled(enabled, egui::Checkbox::new(&mut on, label))
+                    .on_hover_text(hint)
+                    .changed()
+                {
+                    let mut list: Vec<Breakpoint> = v
+                        .breakpoints
+                        .iter()
+                        .filter(|b| **b != kind)
+                        .cloned()
+                        .collect();
+                    if on {
+                        list.push(kind);
+                    }
+                    self.break_text = format_list(&list);
+                    self.send(Command::SetBreakpoints(list));
+                }
+            }
+        });
+        ui.horizontal(|ui| {
+            ui.label("list");
+            let field = ui.add(
+                egui::TextEdit::singleline(&mut self.break_text)
+                    .hint_text("trigger:ankle_3,step:120")
+                    .desired_width(200.0),
+            );
+            let apply = ui.button("Set").clicked()
+                || (field.lost_focus() && ui.input(|i| i.key_pressed(egui::Key::Enter)));
+            if apply {
+                match Breakpoint::parse_list(&self.break_text) {
+                    Ok(list) => {
+                        self.break_error = None;
+                        self.send(Command::SetBreakpoints(list));
+                    }
+                    Err(e) => self.break_error = Some(e.to_string()),
+                }
+            }
+        });
+        if let Some(e) = &self.break_error {
+            ui.colored_label(Color32::from_rgb(230, 90, 60), e);
+        }
+        if let Some(hit) = &v.break_hit {
+            ui.colored_label(Color32::from_rgb(240, 180, 40), format!("⏸ {hit}"));
+        }
+
+        ui.label(RichText::new("Time travel and forks").strong());
+        ui.horizontal(|ui| {
+            ui.label("rewind to step");
+            self.rewind_to = self.rewind_to.min(v.rewindable);
+            ui.add_enabled(
+                v.rewindable > 0,
+                egui::Slider::new(&mut self.rewind_to, 0..=v.rewindable.max(1)),
+            );
+            if ui
+                .add_enabled(v.rewindable > 0, egui::Button::new("Rewind"))
+                .on_hover_text("go back to that step and continue from there (a new branch)")
+                .clicked()
+            {
+                self.send(Command::Rewind(self.rewind_to));
+            }
+        });
+        ui.horizontal(|ui| {
+            ui.label("fork with");
+            ui.add(
+                egui::TextEdit::singleline(&mut self.fork_text)
+                    .hint_text("heal:all, fail:ankle_3, scale:hip_1=0.5")
+                    .desired_width(160.0),
+            );
+            if ui
+                .button("Fork here")
+                .on_hover_text(
+                    "a second lane of this model from the identical state, with these edits",
+                )
+                .clicked()
+            {
+                match DamageEdit::parse_list(&self.fork_text) {
+                    Ok(edits) => {
+                        self.fork_error = None;
+                        self.send(Command::Fork(edits));
+                    }
+                    Err(e) => self.fork_error = Some(e.to_string()),
+                }
+            }
+            let forked = v.lanes.iter().any(|l| l.fork_of.is_some());
+            if ui
+                .add_enabled(forked, egui::Button::new("End fork"))
+                .clicked()
+            {
+                self.send(Command::EndFork);
+            }
+        });
+        if let Some(e) = &self.fork_error {
+            ui.colored_label(Color32::from_rgb(230, 90, 60), e);
+        }
+        let branch = if v.branches > 0 {
+            format!(" · branch {}", v.branches)
+        } else {
+            String::new()
+        };
+        ui.label(
+            RichText::new(format!(
+                "{} steps of this episode kept for rewinding{branch}",
+                v.rewindable
+            ))
+            .small()
+            .weak(),
+        );
+    }
+
     fn readouts(&self, ui: &mut egui::Ui) {
         let v = &self.view;
         for lane in &v.lanes {
@@ -312,7 +458,11 @@ impl Panel {
                 .filter(|&i| lane.states[i] != JointState::Healthy)
                 .map(|i| lane.joint_names[i].as_str())
                 .collect();
-            ui.label(RichText::new(format!("{} ({})", lane.label, lane.encoder)).strong());
+            let title = match &lane.fork_of {
+                Some(of) => format!("fork: {of}"),
+                None => format!("{} ({})", lane.label, lane.encoder),
+            };
+            ui.label(RichText::new(title).strong());
             ui.label(format!(
                 "step {} / {} · goal distance {:.2} m · success {} · damaged joints {}{}",
                 lane.step,

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use rerun::RecordingStream;
 
+use super::breakpoint::{BreakHit, Breakpoint, LaneStep};
 use super::{Command, LiveCondition, LiveError, MAX_SPEED, MIN_SPEED, Slot, live_specs};
 use crate::config::GaitConfig;
 use crate::damage::{ConditionChoice, JointState, N_ACTUATORS};
@@ -37,6 +38,8 @@ pub struct LiveSetup {
     pub step_limit: usize,
     pub mode: ActionMode,
     pub paused: bool,
+    /// Pause after any step where one of these holds.
+    pub breakpoints: Vec<Breakpoint>,
     /// Env settings (model, weights); a checkpoint's own task settings take precedence.
     pub config: GaitConfig,
 }
@@ -57,6 +60,12 @@ impl LiveSetup {
         self.check_settings()?;
         for dir in std::iter::once(&self.checkpoint).chain(&self.compare) {
             crate::policy::Policy::load(dir, None)?;
+        }
+        let env = crate::env::AntEnv::new(self.config.clone(), 0)
+            .map_err(|e| LiveError::Record(crate::telemetry::RecordError::Env(e)))?;
+        let has_probe = self.checkpoint.join(crate::probe::PROBE_FILE).exists();
+        for b in &self.breakpoints {
+            b.validate(env.damage().joint_names(), has_probe)?;
         }
         Ok(())
     }
@@ -96,6 +105,8 @@ pub struct LaneView {
     pub applied: [f64; N_ACTUATORS],
     pub events: usize,
     pub last_event: Option<String>,
+    /// For the fork lane: what it was forked from.
+    pub fork_of: Option<String>,
 }
 
 impl LaneView {
@@ -130,6 +141,7 @@ impl LaneView {
             damaged,
             commanded: last.map_or([0.0; N_ACTUATORS], |o| o.commanded_action),
             applied: last.map_or([0.0; N_ACTUATORS], |o| o.applied_action),
+            fork_of: lane.fork_of().map(str::to_string),
             events: damage.events().len(),
             last_event: damage.events().last().map(|e| match e.kind {
                 crate::damage::DamageEventKind::Trigger => {
@@ -166,6 +178,15 @@ pub struct Snapshot {
     pub target_steps_per_s: f64,
     /// The last problem (a checkpoint that did not load, a rejected change), for the panel.
     pub message: Option<String>,
+    pub breakpoints: Vec<Breakpoint>,
+    /// The breakpoint that paused the sim, until it runs on.
+    pub break_hit: Option<BreakHit>,
+    /// Steps of this episode the sim can rewind to: 0 ..= this.
+    pub rewindable: usize,
+    /// Rewinds so far (each a new branch on the timeline).
+    pub branches: u64,
+    /// Whether the main model's checkpoint has a probe.json (for `probe-flip`).
+    pub has_probe: bool,
     /// The simulation thread has stopped.
     pub stopped: bool,
 }
@@ -215,6 +236,7 @@ impl SimHandle {
         let compare_on = compare.is_some();
         let config = episode_config(&setup.config, setup.condition, setup.step_limit);
         let mut session = Session::new(rec, live_specs(main, compare), config)?;
+        session.keep_history(true);
         session.set_action_mode(setup.mode);
         session.set_fatigue_triggers(setup.condition.fatigue_triggers());
         session.start_episode(setup.seed)?;
@@ -235,6 +257,8 @@ impl SimHandle {
             step_once: false,
             over_since: None,
             message: None,
+            breakpoints: setup.breakpoints.clone(),
+            break_hit: None,
             recent: Vec::new(),
             speeds: BTreeMap::new(),
         };
@@ -326,6 +350,8 @@ struct Sim {
     /// When every model's episode ended (the next starts after [`HOLD_FINISHED`]).
     over_since: Option<Instant>,
     message: Option<String>,
+    breakpoints: Vec<Breakpoint>,
+    break_hit: Option<BreakHit>,
     /// Wall times of the steps in the last second (the achieved rate).
     recent: Vec<Instant>,
     /// Per speed (in 1/1000 ×): running seconds and steps.
@@ -440,12 +466,49 @@ impl Sim {
             }
             return Ok(false);
         }
+        self.break_hit = None;
         self.session.step()?;
+        if let Some(hit) = self.check_breakpoints() {
+            self.session.log_break(&hit.lane, &hit.to_string())?;
+            self.paused = true;
+            self.break_hit = Some(hit);
+        }
         let now = Instant::now();
         self.recent.push(now);
         self.recent
             .retain(|t| now.duration_since(*t) < Duration::from_secs(1));
         Ok(true)
+    }
+
+    /// The first breakpoint that holds for the step just taken, lane by lane (main first).
+    fn check_breakpoints(&self) -> Option<BreakHit> {
+        for lane in self.session.lanes() {
+            let Some(outcome) = lane.last() else {
+                continue;
+            };
+            // A lane that ended earlier did not step now.
+            if lane.stepped_at() != self.session.global_step() {
+                continue;
+            }
+            let step = LaneStep {
+                outcome,
+                events: lane.step_events(),
+                probe_before: lane.probe_before(),
+                probe_after: lane.probe_now(),
+                joint_names: lane.env().damage().joint_names(),
+            };
+            for b in &self.breakpoints {
+                if let Some(reason) = b.hit(&step) {
+                    return Some(BreakHit {
+                        breakpoint: b.clone(),
+                        lane: lane.root().to_string(),
+                        step: outcome.step + 1,
+                        reason,
+                    });
+                }
+            }
+        }
+        None
     }
 
     fn new_episode(&mut self) -> Result<(), LiveError> {
@@ -488,10 +551,12 @@ impl Sim {
             }
             Command::Resume => {
                 self.paused = false;
+                self.break_hit = None;
                 Ok(())
             }
             Command::StepOnce => {
                 self.step_once = true;
+                self.break_hit = None;
                 Ok(())
             }
             Command::SetSpeed(s) => {
@@ -509,11 +574,41 @@ impl Sim {
             }
             Command::Load { slot, dir } => self.load(slot, dir),
             Command::SetCompare(on) => self.set_compare(on),
+            Command::SetBreakpoints(list) => self.set_breakpoints(list),
+            Command::Rewind(step) => {
+                self.break_hit = None;
+                self.over_since = None;
+                self.session.rewind(step).map_err(LiveError::from)
+            }
+            Command::Fork(edits) => {
+                if self.session.is_over() {
+                    Err(LiveError::Record(crate::telemetry::RecordError::Env(
+                        crate::env::EnvError::BadState(
+                            "the episode is over: rewind or reset before forking".into(),
+                        ),
+                    )))
+                } else {
+                    self.session.fork(&edits).map_err(LiveError::from)
+                }
+            }
+            Command::EndFork => self.session.end_fork().map(|_| ()).map_err(LiveError::from),
             Command::Quit => Ok(()),
         };
         if let Err(e) = result {
             self.message = Some(e.to_string());
         }
+    }
+
+    fn set_breakpoints(&mut self, list: Vec<Breakpoint>) -> Result<(), LiveError> {
+        let Some(main) = self.session.lanes().first() else {
+            return Ok(());
+        };
+        let has_probe = main.probe().is_some();
+        for b in &list {
+            b.validate(main.env().damage().joint_names(), has_probe)?;
+        }
+        self.breakpoints = list;
+        Ok(())
     }
 
     /// Replaces a model; the old one stays if the new one does not load.
@@ -590,6 +685,15 @@ impl Sim {
             steps_per_s: self.recent.len() as f64,
             target_steps_per_s: self.target_rate(),
             message: self.message.clone(),
+            breakpoints: self.breakpoints.clone(),
+            break_hit: self.break_hit.clone(),
+            rewindable: self.session.rewindable(),
+            branches: self.session.branches(),
+            has_probe: self
+                .session
+                .lanes()
+                .first()
+                .is_some_and(|l| l.probe().is_some()),
             stopped: false,
         }
     }

@@ -11,6 +11,7 @@
 //! | `{root}/world/torso` | Ellipsoids3D | radius static; pose per step |
 //! | `{root}/world/floor`, `{root}/world/goal`, `{root}/world/goal/radius` | Boxes3D, Ellipsoids3D, LineStrips3D | static |
 //! | `{root}/world/trail` | LineStrips3D (torso path, every 5th step) | every 5 steps |
+//! | `{root}/world/focus` | LineStrips3D, a faint 2.5 m ring on the floor under the torso: what the 3-D view's camera tracks (its size sets the framing) | per step |
 //! | `{root}/joints/fatigue`, `{root}/joints/scale` | Scalars × 8 (series named by joint, actuator order) | per step |
 //! | `{root}/joints/threshold` | Scalars | episode start and end |
 //! | `{root}/events` | TextLog (triggers, overrides) | on events |
@@ -36,11 +37,14 @@ use crate::probe::ProbeFile;
 
 mod session;
 pub use session::{
-    Actor, Lane, LaneSpec, RecordError, RecordOptions, RecordSummary, Session, model_roots, record,
-    side_by_side_offset,
+    Actor, FORK_ROOT, HISTORY_CAP, Lane, LaneSnapshot, LaneSpec, RecordError, RecordOptions,
+    RecordSummary, RewindError, Session, model_roots, record, side_by_side_offset,
 };
 
 pub const APP_ID: &str = "gaitscope";
+/// The ring the 3-D camera tracks: its radius (m) and segments.
+const FOCUS_RADIUS: f32 = 2.5;
+const FOCUS_SEGMENTS: usize = 32;
 /// Log the trail (torso path, PCA path) every this many steps: bounded bytes per step.
 pub const TRAIL_EVERY: usize = 5;
 /// A foot's stance states in the gait diagram, by the worst state of its leg's two joints.
@@ -115,9 +119,7 @@ pub fn open(
     recording_id: &str,
     roots: &[String],
 ) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
-    let builder = RecordingStreamBuilder::new(APP_ID)
-        .recording_id(recording_id.to_string())
-        .with_blueprint(default_blueprint(roots));
+    let builder = RecordingStreamBuilder::new(APP_ID).recording_id(recording_id.to_string());
     let (rec, storage) = match sink {
         Sink::File(path) => {
             create_parent_dir(path)?;
@@ -151,11 +153,34 @@ pub fn open(
     };
     rec.set_log_time_enabled(false);
     rec.set_log_tick_enabled(false);
+    send_layout(&rec, roots)?;
     Ok((rec, storage))
 }
 
 /// What someone opening the file sees first: the Ant large, fatigue, z / PCA, progress, events.
 pub fn default_blueprint(roots: &[String]) -> Blueprint {
+    default_layout(roots).blueprint
+}
+
+/// Our blueprint and the view properties the Rust view builders do not expose, by view path.
+pub struct Layout {
+    pub blueprint: Blueprint,
+    /// (blueprint entity path, property archetype) to log on the blueprint stream.
+    pub properties: Vec<(String, Box<dyn rerun::AsComponents + Send>)>,
+}
+
+/// The view's path in the blueprint store (`view/{id}`), where its properties live.
+fn view_path(view: &rerun::blueprint::ContainerLike) -> Option<String> {
+    match view {
+        rerun::blueprint::ContainerLike::View(v) => Some(v.blueprint_path().to_string()),
+        _ => None,
+    }
+}
+
+/// The layout, with its properties: each 3-D view follows its Ant's torso, and time-series
+/// legends are hidden (they covered the lines; hovering a line names it).
+pub fn default_layout(roots: &[String]) -> Layout {
+    let mut properties: Vec<(String, Box<dyn rerun::AsComponents + Send>)> = Vec::new();
     let paths = |leaves: &[&str]| -> Vec<String> {
         roots
             .iter()
@@ -163,51 +188,76 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
             .collect()
     };
     // One 3-D view per model: side-by-side models each get their own camera.
-    let mut worlds: Vec<rerun::blueprint::ContainerLike> = roots
-        .iter()
-        .map(|r| {
-            let name = if roots.len() == 1 {
-                "Ant".to_string()
-            } else {
-                format!("Ant: {r}")
-            };
-            Spatial3DView::new(name)
-                .with_origin("/")
-                .with_contents([format!("/{r}/world/**")])
-                .into()
-        })
-        .collect();
+    let mut worlds: Vec<rerun::blueprint::ContainerLike> = Vec::new();
+    for r in roots {
+        let name = if roots.len() == 1 {
+            "Ant".to_string()
+        } else {
+            format!("Ant: {r}")
+        };
+        let view: rerun::blueprint::ContainerLike = Spatial3DView::new(name)
+            .with_origin("/")
+            .with_contents([format!("/{r}/world/**")])
+            .into();
+        if let Some(path) = view_path(&view) {
+            properties.push((
+                format!("{path}/EyeControls3D"),
+                Box::new(
+                    rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D::new()
+                        .with_tracking_entity(format!("/{r}/world/focus")),
+                ),
+            ));
+        }
+        worlds.push(view);
+    }
     let world: rerun::blueprint::ContainerLike = if worlds.len() == 1 {
         worlds.remove(0)
     } else {
         Horizontal::new(worlds).into()
     };
-    let fatigue = TimeSeriesView::new("Fatigue per joint (τ = threshold)")
-        .with_contents(paths(&["joints/fatigue", "joints/threshold"]));
-    let scale = TimeSeriesView::new("Torque scale").with_contents(paths(&["joints/scale"]));
-    let latent = TimeSeriesView::new("z").with_contents(paths(&["latent/z"]));
+    let mut series = |view: TimeSeriesView| -> rerun::blueprint::ContainerLike {
+        let view = view.into();
+        if let Some(path) = view_path(&view) {
+            properties.push((
+                format!("{path}/PlotLegend"),
+                Box::new(
+                    rerun::external::re_sdk_types::blueprint::archetypes::PlotLegend::new()
+                        .with_visible(false),
+                ),
+            ));
+        }
+        view
+    };
+    let fatigue = series(
+        TimeSeriesView::new("Fatigue per joint (τ = threshold)")
+            .with_contents(paths(&["joints/fatigue", "joints/threshold"])),
+    );
+    let scale = series(TimeSeriesView::new("Torque scale").with_contents(paths(&["joints/scale"])));
+    let latent = series(TimeSeriesView::new("z").with_contents(paths(&["latent/z"])));
+    let progress =
+        series(TimeSeriesView::new("Goal distance").with_contents(paths(&["goal/distance"])));
+    let probe = series(
+        TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"])),
+    );
     let pca = Spatial2DView::new("z in PCA basis")
         .with_contents(paths(&["latent/pca", "latent/pca_trail"]));
     let pca3 = Spatial3DView::new("z in PCA basis, 3-D")
         .with_contents(paths(&["latent/pca3", "latent/pca3_trail"]));
-    let progress = TimeSeriesView::new("Goal distance").with_contents(paths(&["goal/distance"]));
-    let probe =
-        TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"]));
     let events = TextLogView::new("Damage events").with_contents(paths(&["events"]));
     let gait = rerun::blueprint::StateTimelineView::new("Gait: stance per leg")
         .with_contents(paths(&["gait/**"]));
-    Blueprint::new(
+    let blueprint = Blueprint::new(
         Horizontal::new([
             Vertical::new([world, events.into()])
                 .with_row_shares([3.0, 1.0])
                 .into(),
-            Vertical::new([gait.into(), fatigue.into(), scale.into(), progress.into()])
+            Vertical::new([gait.into(), fatigue, scale, progress])
                 .with_row_shares([1.5, 1.0, 1.0, 1.0])
                 .into(),
             Vertical::new([
-                latent.into(),
+                latent,
                 rerun::blueprint::Tabs::new([pca.into(), pca3.into()]).into(),
-                probe.into(),
+                probe,
             ])
             .into(),
         ])
@@ -222,7 +272,59 @@ pub fn default_blueprint(roots: &[String]) -> Blueprint {
     .with_selection_panel(
         rerun::blueprint::SelectionPanel::new()
             .with_state(rerun::blueprint::components::PanelState::Collapsed),
-    )
+    );
+    Layout {
+        blueprint,
+        properties,
+    }
+}
+
+/// Sends our layout to `rec`, made active and default (its views depend on the models, so a
+/// layout the viewer kept from another recording must not win), properties included: the
+/// blueprint's messages are built on a memory stream, the properties logged into the same
+/// blueprint store, and all of it goes out before the activation command.
+pub fn send_layout(rec: &RecordingStream, roots: &[String]) -> Result<(), TelemetryError> {
+    use rerun::log::LogMsg;
+    let layout = default_layout(roots);
+    let (scratch, storage) = RecordingStreamBuilder::new(APP_ID).memory()?;
+    layout.blueprint.send(
+        &scratch,
+        rerun::blueprint::BlueprintActivation {
+            make_active: true,
+            make_default: true,
+        },
+    )?;
+    scratch
+        .flush_blocking()
+        .map_err(|e| TelemetryError::Flush(e.to_string()))?;
+    let mut messages = Vec::new();
+    let mut activation = None;
+    for msg in storage.take() {
+        match msg {
+            LogMsg::BlueprintActivationCommand(cmd) => activation = Some(cmd),
+            msg if msg.store_id().is_blueprint() => messages.push(msg),
+            _ => {} // the scratch recording's own store info
+        }
+    }
+    let activation = activation
+        .ok_or_else(|| TelemetryError::Flush("the blueprint has no activation".into()))?;
+    let (props, props_storage) =
+        RecordingStreamBuilder::from_store_id(&activation.blueprint_id).memory()?;
+    props.set_time_sequence("blueprint", 0);
+    for (path, archetype) in &layout.properties {
+        props.log(path.as_str(), archetype.as_ref())?;
+    }
+    props
+        .flush_blocking()
+        .map_err(|e| TelemetryError::Flush(e.to_string()))?;
+    messages.extend(
+        props_storage
+            .take()
+            .into_iter()
+            .filter(|m| matches!(m, LogMsg::ArrowMsg(..))),
+    );
+    rec.send_blueprint(messages, activation);
+    Ok(())
 }
 
 /// A capsule of the model: MuJoCo's capsule is centred on its frame, axis along local z.
@@ -503,6 +605,32 @@ impl AntLogger {
         Ok(())
     }
 
+    /// After a rewind to `steps` steps of the episode: trails cut back, events after
+    /// `events` written again when they recur, gait lanes re-logged.
+    pub fn rewind_to(&mut self, steps: usize, events: usize) {
+        self.trail.truncate(steps);
+        self.pca_trail.truncate(steps);
+        self.logged_events = events;
+        self.gait_states = [None; crate::env::N_LEGS];
+    }
+
+    /// A fork's logger starts with the paths drawn so far by the lane it forks from, and logs
+    /// only the events from the fork on.
+    pub fn continue_from(&mut self, other: &AntLogger) {
+        self.trail = other.trail.clone();
+        self.pca_trail = other.pca_trail.clone();
+        self.logged_events = other.logged_events;
+    }
+
+    /// A debugger note in this lane's event log, at the current time, with its own level.
+    pub fn log_note(&mut self, level: NoteLevel, text: &str) -> Result<(), TelemetryError> {
+        self.rec.log(
+            self.path("events").as_str(),
+            &rerun::TextLog::new(text).with_level(level.as_str()),
+        )?;
+        Ok(())
+    }
+
     /// Ends every time series of this lane at the current time: the viewer breaks a line at a
     /// `Clear`, so a lane that waits for the others (its episode ended early) shows a gap until
     /// its next episode instead of a straight line across steps it never ran.
@@ -566,6 +694,22 @@ impl AntLogger {
             )?;
         }
         let torso = physics.xpos()[env.torso_body()];
+        // The camera follows this ring: tracking the torso itself would frame a 0.25 m ball.
+        let focus: Vec<[f32; 3]> = (0..=FOCUS_SEGMENTS)
+            .map(|k| {
+                let a = k as f32 / FOCUS_SEGMENTS as f32 * std::f32::consts::TAU;
+                [
+                    torso[0] as f32 + FOCUS_RADIUS * a.cos(),
+                    torso[1] as f32 + FOCUS_RADIUS * a.sin(),
+                    0.01,
+                ]
+            })
+            .collect();
+        self.rec.log(
+            self.path("world/focus").as_str(),
+            &rerun::LineStrips3D::new([focus])
+                .with_colors([rerun::Color::from_unmultiplied_rgba(200, 200, 200, 60)]),
+        )?;
         self.trail
             .push([torso[0] as f32, torso[1] as f32, torso[2] as f32]);
         if out.step.is_multiple_of(TRAIL_EVERY) || out.done() {
@@ -674,13 +818,13 @@ impl AntLogger {
                 self.rec.log(
                     self.path("latent/pca").as_str(),
                     &rerun::Points2D::new([[axis(0), axis(1)]])
-                        .with_radii([0.12])
+                        .with_radii([rerun::Radius::new_ui_points(7.0)])
                         .with_colors([current]),
                 )?;
                 self.rec.log(
                     self.path("latent/pca3").as_str(),
                     &rerun::Points3D::new([[axis(0), axis(1), axis(2)]])
-                        .with_radii([0.08])
+                        .with_radii([rerun::Radius::new_ui_points(7.0)])
                         .with_colors([current]),
                 )?;
                 if out.step.is_multiple_of(TRAIL_EVERY) {
@@ -689,13 +833,13 @@ impl AntLogger {
                     self.rec.log(
                         self.path("latent/pca_trail").as_str(),
                         &rerun::Points2D::new(trail.iter().map(|(p, _)| [p[0], p[1]]))
-                            .with_radii([0.04])
+                            .with_radii([rerun::Radius::new_ui_points(2.5)])
                             .with_colors(trail.iter().map(|(_, c)| *c)),
                     )?;
                     self.rec.log(
                         self.path("latent/pca3_trail").as_str(),
                         &rerun::Points3D::new(trail.iter().map(|(p, _)| *p))
-                            .with_radii([0.03])
+                            .with_radii([rerun::Radius::new_ui_points(2.5)])
                             .with_colors(trail.iter().map(|(_, c)| *c)),
                     )?;
                 }
@@ -710,6 +854,25 @@ impl AntLogger {
             }
         }
         Ok(())
+    }
+}
+
+/// Levels of the debugger's own notes in the event log (beside Rerun's WARN for triggers and
+/// INFO for overrides), so the viewer can filter and colour them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NoteLevel {
+    /// A breakpoint fired.
+    Break,
+    /// A rewind or a fork started a branch.
+    Branch,
+}
+
+impl NoteLevel {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            NoteLevel::Break => "BREAK",
+            NoteLevel::Branch => "BRANCH",
+        }
     }
 }
 

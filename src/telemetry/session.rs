@@ -10,13 +10,14 @@ use std::path::PathBuf;
 
 use super::{AntLogger, EpisodeMeta, Sink, TelemetryError, open};
 use crate::config::{DamageConfig, EnvConfig, GaitConfig};
-use crate::damage::JointOverride;
-use crate::env::{AntEnv, Observation, StepOutcome};
+use crate::damage::{DamageEdit, JointOverride, N_ACTUATORS};
+use crate::env::{AntEnv, EnvSnapshot, Observation, StepOutcome};
 use crate::policy::{ActionMode, Policy};
 use crate::rollout::BuiltinPolicy;
 use crate::window::ContextWindow;
 
 /// Who acts in a lane.
+#[derive(Clone)]
 pub enum Actor {
     Checkpoint { dir: PathBuf, policy: Box<Policy> },
     Builtin(BuiltinPolicy),
@@ -98,6 +99,34 @@ pub fn side_by_side_offset(k: usize) -> [f32; 3] {
     [12.0 * k as f32, 0.0, 0.0]
 }
 
+/// Entity root of the counterfactual lane a fork adds.
+pub const FORK_ROOT: &str = "fork";
+
+/// Keep at most this many steps of an episode for rewinding (a step is a few KB per lane:
+/// MuJoCo's integration state, the damage state, the 16 × 37 window).
+pub const HISTORY_CAP: usize = 10_000;
+
+/// Everything that decides a lane's future: restoring it and stepping on repeats the original
+/// steps bit for bit.
+#[derive(Debug, Clone)]
+pub struct LaneSnapshot {
+    env: EnvSnapshot,
+    window: ContextWindow,
+    obs: Observation,
+    rng: ChaCha8Rng,
+    last: Option<StepOutcome>,
+    z: Option<Vec<f32>>,
+    probe_now: Option<[f64; N_ACTUATORS]>,
+    done: bool,
+}
+
+impl LaneSnapshot {
+    /// Env steps of the episode at the snapshot.
+    pub fn steps(&self) -> usize {
+        self.env.steps()
+    }
+}
+
 /// One model driving one Ant.
 pub struct Lane {
     actor: Actor,
@@ -111,6 +140,13 @@ pub struct Lane {
     last: Option<StepOutcome>,
     z: Option<Vec<f32>>,
     done: bool,
+    /// The probe's P(damaged) per joint before and after the latest step (with a probe.json).
+    probe_before: Option<[f64; N_ACTUATORS]>,
+    probe_now: Option<[f64; N_ACTUATORS]>,
+    /// For a fork lane: what it was forked from, in words.
+    fork_of: Option<String>,
+    /// The session's global step of this lane's latest step.
+    stepped_at: u64,
 }
 
 impl Lane {
@@ -142,7 +178,47 @@ impl Lane {
             last: None,
             z: None,
             done: true,
+            probe_before: None,
+            probe_now: None,
+            fork_of: None,
+            stepped_at: 0,
         })
+    }
+
+    /// The lane's state now (see [`LaneSnapshot`]).
+    pub fn snapshot(&self) -> LaneSnapshot {
+        LaneSnapshot {
+            env: self.env.snapshot(),
+            window: self.window.clone(),
+            obs: self.obs,
+            rng: self.rng.clone(),
+            last: self.last.clone(),
+            z: self.z.clone(),
+            probe_now: self.probe_now,
+            done: self.done,
+        }
+    }
+
+    /// Puts the lane back into `snapshot`'s state, its drawing state (trails, logged events)
+    /// with it.
+    fn restore(&mut self, snapshot: &LaneSnapshot) -> Result<(), RecordError> {
+        self.env.restore(&snapshot.env)?;
+        self.window = snapshot.window.clone();
+        self.obs = snapshot.obs;
+        self.rng = snapshot.rng.clone();
+        self.last = snapshot.last.clone();
+        self.z = snapshot.z.clone();
+        self.probe_before = snapshot.probe_now;
+        self.probe_now = snapshot.probe_now;
+        self.done = snapshot.done;
+        self.logger
+            .rewind_to(snapshot.steps(), self.env.damage().events().len());
+        Ok(())
+    }
+
+    fn probe_readout(&self, z: Option<&[f32]>) -> Option<[f64; N_ACTUATORS]> {
+        let p = self.logger.probe()?.joint_damage_probabilities(z?);
+        (p.len() == N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
     }
 
     fn decide(&mut self, mode: ActionMode) -> Result<(Vec<f64>, Option<Vec<f32>>), RecordError> {
@@ -183,6 +259,39 @@ impl Lane {
     pub fn is_done(&self) -> bool {
         self.done
     }
+    /// The damage events of the latest step: its triggers, and the edits that took effect with
+    /// it (an event's `step` is the first step it shapes).
+    pub fn step_events(&self) -> &[crate::damage::DamageEvent] {
+        let events = self.env.damage().events();
+        let Some(last) = &self.last else {
+            return &[];
+        };
+        let first = events
+            .iter()
+            .rposition(|e| e.step < last.step)
+            .map_or(0, |k| k + 1);
+        let end = events
+            .iter()
+            .rposition(|e| e.step <= last.step)
+            .map_or(0, |k| k + 1);
+        &events[first..end.max(first)]
+    }
+    /// The probe's P(damaged) per joint before the latest step.
+    pub fn probe_before(&self) -> Option<&[f64; N_ACTUATORS]> {
+        self.probe_before.as_ref()
+    }
+    /// The probe's P(damaged) per joint after the latest step.
+    pub fn probe_now(&self) -> Option<&[f64; N_ACTUATORS]> {
+        self.probe_now.as_ref()
+    }
+    /// The session's global step (the `step` timeline) of this lane's latest step.
+    pub fn stepped_at(&self) -> u64 {
+        self.stepped_at
+    }
+    /// For a fork lane: what it was forked from.
+    pub fn fork_of(&self) -> Option<&str> {
+        self.fork_of.as_deref()
+    }
 }
 
 /// Models in lockstep, logged to one recording stream.
@@ -198,6 +307,12 @@ pub struct Session {
     global_step: u64,
     episodes_started: u64,
     seed: u64,
+    /// Keep every step's state for rewinding ([`Self::keep_history`]).
+    keep_history: bool,
+    /// The model lanes' states before each step of this episode: index k = after k steps.
+    history: Vec<Vec<LaneSnapshot>>,
+    /// Rewinds in this recording (each starts a new branch on the timeline).
+    branches: u64,
 }
 
 impl Session {
@@ -221,7 +336,146 @@ impl Session {
             global_step: 0,
             episodes_started: 0,
             seed: 0,
+            keep_history: false,
+            history: Vec::new(),
+            branches: 0,
         })
+    }
+
+    /// Keep every step's state of the current episode (up to [`HISTORY_CAP`]), so
+    /// [`Self::rewind`] can go back to it.
+    pub fn keep_history(&mut self, on: bool) {
+        self.keep_history = on;
+        if !on {
+            self.history.clear();
+        }
+    }
+
+    /// Episode steps the session can rewind to: 0 ..= this (the current step included).
+    pub fn rewindable(&self) -> usize {
+        self.history.len()
+    }
+
+    /// Rewinds in this recording so far.
+    pub fn branches(&self) -> u64 {
+        self.branches
+    }
+
+    fn model_lanes(&self) -> usize {
+        self.lanes.iter().filter(|l| l.fork_of.is_none()).count()
+    }
+
+    fn drop_fork(&mut self) -> Result<bool, RecordError> {
+        let before = self.lanes.len();
+        self.lanes.retain(|l| l.fork_of.is_none());
+        if self.lanes.len() == before {
+            return Ok(false);
+        }
+        let roots: Vec<String> = self.lanes.iter().map(|l| l.root.clone()).collect();
+        super::send_layout(&self.rec, &roots)?;
+        Ok(true)
+    }
+
+    /// Ends the fork lane, if any (its data stays in the recording).
+    pub fn end_fork(&mut self) -> Result<bool, RecordError> {
+        self.drop_fork()
+    }
+
+    /// Goes back to the state after `step` steps of this episode and continues from there: the
+    /// new steps follow on the `step` timeline after a one-step gap (a new branch), so the
+    /// original history stays in the recording, earlier on the timeline. A fork lane ends.
+    pub fn rewind(&mut self, step: usize) -> Result<(), RewindError> {
+        let now = self.lanes.first().map_or(0, |l| l.env.steps());
+        if step == now && step == self.history.len() {
+            return Ok(());
+        }
+        let Some(states) = self.history.get(step).cloned() else {
+            return Err(RewindError::OutOfRange {
+                step,
+                available: self.history.len(),
+            });
+        };
+        self.drop_fork()?;
+        self.branches += 1;
+        let episode = self.episodes_started.saturating_sub(1);
+        // The gap: every series breaks here instead of joining the old branch to the new one.
+        self.global_step += 1;
+        for (lane, state) in self.lanes.iter_mut().zip(&states) {
+            lane.restore(state)?;
+            lane.logger.set_time(self.global_step, episode);
+            lane.logger.log_series_gap()?;
+            lane.logger.log_note(
+                super::NoteLevel::Branch,
+                &format!(
+                    "branch {}: rewound to step {step} of episode {episode}",
+                    self.branches
+                ),
+            )?;
+        }
+        self.history.truncate(step);
+        Ok(())
+    }
+
+    /// Starts a counterfactual lane of the main model (root [`FORK_ROOT`], drawn beside the
+    /// others) from its exact current state with `edits` applied; it steps in lockstep until it
+    /// ends, the episode ends, or [`Self::end_fork`]. A previous fork is replaced.
+    pub fn fork(&mut self, edits: &[DamageEdit]) -> Result<(), RecordError> {
+        self.drop_fork()?;
+        let Some(main) = self.lanes.first() else {
+            return Ok(());
+        };
+        let state = main.snapshot();
+        let described = format!(
+            "fork of {} at step {}: {}",
+            main.root,
+            state.steps(),
+            edits
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(",")
+        );
+        let spec = LaneSpec {
+            actor: main.actor.clone(),
+            root: FORK_ROOT.to_string(),
+            world_offset: side_by_side_offset(self.lanes.len()),
+        };
+        let mut lane = Lane::new(spec, &self.rec, &self.config, self.seed)?;
+        lane.env.set_fatigue_triggers(self.fatigue_triggers);
+        lane.env.restore(&state.env)?;
+        for edit in edits {
+            lane.env.apply_edit(edit)?;
+        }
+        lane.window = state.window;
+        lane.obs = state.obs;
+        lane.rng = state.rng;
+        lane.last = state.last;
+        lane.z = state.z;
+        lane.probe_now = state.probe_now;
+        lane.probe_before = state.probe_now;
+        lane.done = state.done;
+        lane.logger.continue_from(&self.lanes[0].logger);
+        lane.fork_of = Some(described.clone());
+        let episode = self.episodes_started.saturating_sub(1);
+        lane.logger.set_time(self.global_step, episode);
+        let mut meta = episode_meta(self.fatigue_triggers, self.seed, &lane.actor, &lane.env);
+        meta.checkpoint = format!("{} ({described})", meta.checkpoint);
+        lane.logger.log_episode(&meta, &lane.env, None)?;
+        lane.logger.continue_from(&self.lanes[0].logger);
+        lane.logger.log_note(super::NoteLevel::Branch, &described)?;
+        self.lanes.push(lane);
+        let roots: Vec<String> = self.lanes.iter().map(|l| l.root.clone()).collect();
+        super::send_layout(&self.rec, &roots)?;
+        Ok(())
+    }
+
+    /// Writes a breakpoint hit (or any debugger note) into a lane's event log at the current
+    /// time, as its own level.
+    pub fn log_break(&mut self, root: &str, text: &str) -> Result<(), RecordError> {
+        if let Some(lane) = self.lanes.iter_mut().find(|l| l.root == root) {
+            lane.logger.log_note(super::NoteLevel::Break, text)?;
+        }
+        Ok(())
     }
 
     /// Deterministic (evaluation) or sampled actions, from the next step on.
@@ -245,15 +499,7 @@ impl Session {
     pub fn replace_lanes(&mut self, specs: Vec<LaneSpec>) -> Result<(), RecordError> {
         // The layout follows the models: one 3-D view each.
         let roots: Vec<String> = specs.iter().map(|s| s.root.clone()).collect();
-        super::default_blueprint(&roots)
-            .send(
-                &self.rec,
-                rerun::blueprint::BlueprintActivation {
-                    make_active: true,
-                    make_default: true,
-                },
-            )
-            .map_err(TelemetryError::from)?;
+        super::send_layout(&self.rec, &roots)?;
         self.lanes = specs
             .into_iter()
             .map(|spec| Lane::new(spec, &self.rec, &self.config, self.seed))
@@ -269,6 +515,8 @@ impl Session {
 
     /// Resets every lane with `seed` and logs the episode's metadata.
     pub fn start_episode(&mut self, seed: u64) -> Result<(), RecordError> {
+        self.drop_fork()?;
+        self.history.clear();
         if self.config_changed {
             for lane in &mut self.lanes {
                 lane.env = AntEnv::new(lane.actor.config(&self.config), seed)?;
@@ -286,6 +534,8 @@ impl Session {
             lane.last = None;
             lane.z = None;
             lane.done = false;
+            lane.probe_before = None;
+            lane.probe_now = None;
             lane.logger.set_time(self.global_step, episode);
             let meta = episode_meta(self.fatigue_triggers, seed, &lane.actor, &lane.env);
             lane.logger.log_episode(&meta, &lane.env, None)?;
@@ -298,6 +548,11 @@ impl Session {
         if self.is_over() {
             return Ok(true);
         }
+        if self.keep_history && self.history.len() < HISTORY_CAP {
+            let models = self.model_lanes();
+            self.history
+                .push(self.lanes[..models].iter().map(Lane::snapshot).collect());
+        }
         self.global_step += 1;
         let episode = self.episodes_started.saturating_sub(1);
         let mut ended = Vec::new();
@@ -306,7 +561,11 @@ impl Session {
                 continue;
             }
             let (action, z) = self.lanes[i].decide(self.mode)?;
+            let probe_now = self.lanes[i].probe_readout(z.as_deref());
             let lane = &mut self.lanes[i];
+            lane.probe_before = lane.probe_now;
+            lane.probe_now = probe_now;
+            lane.stepped_at = self.global_step;
             let out = lane.env.step(&action)?;
             lane.window.push(&lane.obs, &action);
             lane.logger.set_time(self.global_step, episode);
@@ -337,8 +596,8 @@ impl Session {
         self.lanes.iter().all(|l| l.done)
     }
 
-    /// The same hand-made change to every lane; it applies from the next step and is logged
-    /// as an event with it.
+    /// The same hand-made change to every lane (forks included); it applies from the next step
+    /// and is logged as an event with it.
     pub fn apply_override(
         &mut self,
         actuator: usize,
@@ -409,6 +668,9 @@ pub struct RecordOptions {
     pub episodes: usize,
     pub seed: u64,
     pub sink: Sink,
+    /// Fork the first model in every episode before step `at`, with these edits (lane
+    /// [`FORK_ROOT`], drawn beside the others).
+    pub fork: Option<crate::rollout::Fork>,
 }
 
 /// Outcome of a recording.
@@ -417,6 +679,18 @@ pub struct RecordSummary {
     pub episodes: usize,
     pub interrupted: bool,
     pub storage: Option<rerun::sink::MemorySinkStorage>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RewindError {
+    #[error("step {step} is not in this episode's history (0 ..= {available})")]
+    OutOfRange { step: usize, available: usize },
+    #[error(transparent)]
+    Record(#[from] RecordError),
+    #[error(transparent)]
+    Telemetry(#[from] TelemetryError),
+    #[error(transparent)]
+    Env(#[from] crate::env::EnvError),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -429,6 +703,14 @@ pub enum RecordError {
     Probe(#[from] crate::probe::ProbeError),
     #[error("policy inference failed: {0}")]
     Policy(#[from] candle_core::Error),
+    #[error("--fork-at {at} is beyond the episodes' step limit ({limit})")]
+    ForkBeyondLimit { at: usize, limit: usize },
+    #[error("--fork-at {at} is beyond episode {episode}, which ended after {steps} steps")]
+    ForkBeyondEpisode {
+        at: usize,
+        episode: usize,
+        steps: usize,
+    },
 }
 
 /// Entity roots for several models: `ant` alone, else each model's label (made unique).
@@ -454,6 +736,23 @@ pub fn record(
     opts: RecordOptions,
     stop: &std::sync::atomic::AtomicBool,
 ) -> Result<RecordSummary, RecordError> {
+    if let (Some(fork), Some(actor)) = (&opts.fork, opts.actors.first()) {
+        // Every edit names a joint this model has, and K is inside the step limit: checked
+        // before the file is created.
+        let config = actor.config(&opts.config);
+        let env = AntEnv::new(config.clone(), opts.seed)?;
+        for edit in &fork.edits {
+            env.damage()
+                .resolve(&edit.target)
+                .map_err(crate::env::EnvError::from)?;
+        }
+        if fork.at >= config.env.max_episode_steps {
+            return Err(RecordError::ForkBeyondLimit {
+                at: fork.at,
+                limit: config.env.max_episode_steps,
+            });
+        }
+    }
     let roots = model_roots(&opts.actors);
     let recording_id = format!(
         "gaitscope-{}-seed{}-{}",
@@ -478,12 +777,30 @@ pub fn record(
     let mut interrupted = false;
     'episodes: for k in 0..opts.episodes {
         session.start_episode(opts.seed.wrapping_add(k as u64))?;
+        let mut forked = false;
         while !session.is_over() {
             if stop.load(std::sync::atomic::Ordering::Relaxed) {
                 interrupted = true;
                 break 'episodes;
             }
+            if let Some(fork) = &opts.fork
+                && !forked
+                && session.lanes()[0].env().steps() == fork.at
+                && !session.lanes()[0].is_done()
+            {
+                session.fork(&fork.edits)?;
+                forked = true;
+            }
             session.step()?;
+        }
+        if let Some(fork) = &opts.fork
+            && !forked
+        {
+            return Err(RecordError::ForkBeyondEpisode {
+                at: fork.at,
+                episode: k,
+                steps: session.lanes()[0].env().steps(),
+            });
         }
         episodes_done += 1;
     }

@@ -36,6 +36,7 @@ pub fn per_step<T>(
 }
 
 /// (step, text) of every TextLog line on one entity.
+#[allow(dead_code)] // not every test crate reads text logs
 pub fn text_log(chunks: &[Chunk], entity: &str) -> Vec<(i64, String)> {
     let text = rerun::TextLog::descriptor_text().component;
     per_step(chunks, entity, |c| {
