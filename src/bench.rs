@@ -431,6 +431,7 @@ pub fn bench_live(
                 mode: crate::policy::ActionMode::Deterministic,
                 paused: false,
                 breakpoints: Vec::new(),
+                fork: None,
                 config: crate::GaitConfig::default(),
             };
             let sim = SimHandle::spawn(rec, setup)?;

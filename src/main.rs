@@ -234,6 +234,13 @@ struct LiveArgs {
     /// override, termination, success, probe-flip (needs probe.json), step:N.
     #[arg(long, value_name = "LIST")]
     break_on: Option<String>,
+    /// Fork the main model before step K of every episode (a `fork` lane beside it), with
+    /// --fork's edits, as the panel's "Fork here" does.
+    #[arg(long, value_name = "K", requires = "fork")]
+    fork_at: Option<usize>,
+    /// The fork's damage edits, as for `rollout --fork`.
+    #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
+    fork: Option<String>,
     /// Stream to a viewer that is already running, e.g. rerun+http://HOST:9876/proxy.
     #[arg(long, value_name = "URL")]
     connect: Option<String>,
@@ -801,6 +808,13 @@ fn live_command(args: LiveArgs) -> Result<()> {
         breakpoints: gaitscope::app::Breakpoint::parse_list(
             args.break_on.as_deref().unwrap_or_default(),
         )?,
+        fork: match (args.fork_at, &args.fork) {
+            (Some(at), Some(edits)) => Some(rollout::Fork {
+                at,
+                edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
+            }),
+            _ => None,
+        },
         config,
     };
     // Check what can be checked before any window opens: the input first, then the display.

@@ -62,6 +62,7 @@ fn setup(seed: u64, breakpoints: Vec<Breakpoint>) -> LiveSetup {
         mode: ActionMode::Deterministic,
         paused: true,
         breakpoints,
+        fork: None,
         config: GaitConfig::default(),
     }
 }
@@ -307,6 +308,16 @@ fn a_heal_all_fork_runs_beside_the_unchanged_main_lane() {
             "the main lane is the plain run at {step}"
         );
     }
+    let (d_main, d_fork) = (
+        series(&chunks, "/ant/goal/distance"),
+        series(&chunks, "/fork/goal/distance"),
+    );
+    let parted = (41..=60).filter(|k| d_main[k] != d_fork[k]).count();
+    eprintln!(
+        "distance differs at {parted} of 20 fork steps; at 60: {:?} vs {:?}",
+        d_main[&60], d_fork[&60]
+    );
+    assert!(parted > 0, "healing changes the fork's path");
     assert_eq!(
         applied.keys().min(),
         Some(&41),

@@ -50,6 +50,7 @@ fn setup(dir: &Path, condition: LiveCondition) -> LiveSetup {
         mode: ActionMode::Deterministic,
         paused: true,
         breakpoints: Vec::new(),
+        fork: None,
         config: GaitConfig::default(),
     }
 }

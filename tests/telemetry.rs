@@ -355,3 +355,46 @@ fn the_gait_diagram_follows_mujoco_foot_contacts() {
         "some foot must leave the floor in {STEPS} steps"
     );
 }
+
+/// The layout's view properties travel on the blueprint stream, before its activation: every
+/// 3-D view follows its model's floor ring, every time-series legend is hidden.
+#[test]
+fn the_blueprint_makes_cameras_follow_and_hides_legends() {
+    use rerun::log::LogMsg;
+    let roots = vec!["ant".to_string(), "fork".to_string()];
+    let (_rec, storage) = gaitscope::telemetry::open(&Sink::Memory, "bp-test", &roots).unwrap();
+    let msgs = storage.unwrap().take();
+    let activation = msgs
+        .iter()
+        .position(|m| matches!(m, LogMsg::BlueprintActivationCommand(_)))
+        .expect("the blueprint is activated");
+    let mut tracked = Vec::new();
+    let mut hidden_legends = 0;
+    for (i, msg) in msgs.iter().enumerate() {
+        let LogMsg::ArrowMsg(store, arrow) = msg else {
+            continue;
+        };
+        if !store.is_blueprint() {
+            continue;
+        }
+        let chunk = Chunk::from_arrow_msg(arrow).unwrap();
+        let path = chunk.entity_path().to_string();
+        if path.ends_with("/EyeControls3D") {
+            assert!(i < activation, "sent before the activation");
+            let component = rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D::descriptor_tracking_entity().component;
+            for s in chunk.iter_slices::<String>(component) {
+                tracked.extend(s.iter().map(|t| t.to_string()));
+            }
+        }
+        if path.ends_with("/PlotLegend") {
+            let component = rerun::external::re_sdk_types::blueprint::archetypes::PlotLegend::descriptor_visible().component;
+            for s in chunk.iter_slices::<bool>(component) {
+                assert_eq!(s.iter().collect::<Vec<bool>>(), [false]);
+                hidden_legends += 1;
+            }
+        }
+    }
+    tracked.sort();
+    assert_eq!(tracked, ["/ant/world/focus", "/fork/world/focus"]);
+    assert_eq!(hidden_legends, 5, "fatigue, scale, z, distance, probe");
+}

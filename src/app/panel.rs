@@ -459,7 +459,7 @@ impl Panel {
                 .map(|i| lane.joint_names[i].as_str())
                 .collect();
             let title = match &lane.fork_of {
-                Some(of) => format!("fork: {of}"),
+                Some(of) => of.clone(),
                 None => format!("{} ({})", lane.label, lane.encoder),
             };
             ui.label(RichText::new(title).strong());

@@ -40,6 +40,9 @@ pub struct LiveSetup {
     pub paused: bool,
     /// Pause after any step where one of these holds.
     pub breakpoints: Vec<Breakpoint>,
+    /// Fork the main model in every episode before this step, with these edits (as the
+    /// panel's "Fork here" would).
+    pub fork: Option<crate::rollout::Fork>,
     /// Env settings (model, weights); a checkpoint's own task settings take precedence.
     pub config: GaitConfig,
 }
@@ -66,6 +69,13 @@ impl LiveSetup {
         let has_probe = self.checkpoint.join(crate::probe::PROBE_FILE).exists();
         for b in &self.breakpoints {
             b.validate(env.damage().joint_names(), has_probe)?;
+        }
+        if let Some(fork) = &self.fork {
+            for edit in &fork.edits {
+                env.damage()
+                    .resolve(&edit.target)
+                    .map_err(|e| LiveError::Record(crate::telemetry::RecordError::Env(e.into())))?;
+            }
         }
         Ok(())
     }
@@ -259,6 +269,8 @@ impl SimHandle {
             message: None,
             breakpoints: setup.breakpoints.clone(),
             break_hit: None,
+            auto_fork: setup.fork.clone(),
+            forked_episode: None,
             recent: Vec::new(),
             speeds: BTreeMap::new(),
         };
@@ -352,6 +364,9 @@ struct Sim {
     message: Option<String>,
     breakpoints: Vec<Breakpoint>,
     break_hit: Option<BreakHit>,
+    /// `--fork-at K --fork EDITS`, and the episode it last forked.
+    auto_fork: Option<crate::rollout::Fork>,
+    forked_episode: Option<u64>,
     /// Wall times of the steps in the last second (the achieved rate).
     recent: Vec<Instant>,
     /// Per speed (in 1/1000 ×): running seconds and steps.
@@ -467,6 +482,18 @@ impl Sim {
             return Ok(false);
         }
         self.break_hit = None;
+        if let Some(fork) = &self.auto_fork
+            && self.forked_episode != Some(self.session.episodes_started())
+            && self
+                .session
+                .lanes()
+                .first()
+                .is_some_and(|l| l.env().steps() == fork.at)
+        {
+            let edits = fork.edits.clone();
+            self.forked_episode = Some(self.session.episodes_started());
+            self.session.fork(&edits)?;
+        }
         self.session.step()?;
         if let Some(hit) = self.check_breakpoints() {
             self.session.log_break(&hit.lane, &hit.to_string())?;

@@ -14,7 +14,7 @@
 //! | `{root}/world/focus` | LineStrips3D, a faint 2.5 m ring on the floor under the torso: what the 3-D view's camera tracks (its size sets the framing) | per step |
 //! | `{root}/joints/fatigue`, `{root}/joints/scale` | Scalars × 8 (series named by joint, actuator order) | per step |
 //! | `{root}/joints/threshold` | Scalars | episode start and end |
-//! | `{root}/events` | TextLog (triggers, overrides) | on events |
+//! | `{root}/events` | TextLog (triggers WARN, overrides INFO, breakpoint hits BREAK, rewinds and forks BRANCH) | on events |
 //! | `{root}/actions/commanded`, `{root}/actions/applied` | Scalars × 8 | per step |
 //! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
