@@ -76,6 +76,9 @@ pub struct DamageConfig {
     pub scales: ConditionScales,
     /// How each episode's condition is chosen.
     pub condition: ConditionChoice,
+    /// Scripted damage on top (or instead) of fatigue ([`crate::scenario`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scenario: Option<crate::scenario::Scenario>,
 }
 
 impl Default for DamageConfig {
@@ -86,6 +89,7 @@ impl Default for DamageConfig {
             threshold: 30.0,
             scales: ConditionScales::default(),
             condition: ConditionChoice::Random,
+            scenario: None,
         }
     }
 }

@@ -85,6 +85,8 @@ pub enum JointOverride {
     SetScale(f64),
     /// Trigger now, as if fatigue had reached the threshold.
     FailNow,
+    /// Trigger now, left at this scale (in [0, 1]) instead of the condition's.
+    FailTo(f64),
     /// Restore the joint: scale 1, not triggered, fatigue 0.
     Heal,
     /// Zero the fatigue accumulator; the triggered state is kept.
@@ -117,6 +119,9 @@ pub struct DamageEvent {
     pub scale: f64,
     #[serde(flatten)]
     pub kind: DamageEventKind,
+    /// The scenario that made the change (none for fatigue and hand-made changes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<String>,
 }
 
 /// Per-joint state as the viewer shows it.
@@ -140,7 +145,7 @@ pub enum DamageError {
     #[error("unknown joint '{name}' (the Ant's joints: {known})")]
     NoSuchJoint { name: String, known: String },
     #[error(
-        "bad damage edit '{0}': expected none, heal:JOINT, fail:JOINT, scale:JOINT=S or \
+        "bad damage edit '{0}': expected none, heal:JOINT, fail:JOINT, fail:JOINT=S, scale:JOINT=S or \
          reset-fatigue:JOINT, with JOINT a joint name (e.g. ankle_3) or all"
     )]
     BadEdit(String),
@@ -186,7 +191,16 @@ impl FromStr for DamageEdit {
         };
         let (target, change) = match verb {
             "heal" => (target(rest)?, JointOverride::Heal),
-            "fail" => (target(rest)?, JointOverride::FailNow),
+            "fail" => match rest.split_once('=') {
+                Some((joint, value)) => {
+                    let s: f64 = value.trim().parse().map_err(|_| bad())?;
+                    if !(s.is_finite() && (0.0..=1.0).contains(&s)) {
+                        return Err(DamageError::BadScale(s));
+                    }
+                    (target(joint)?, JointOverride::FailTo(s))
+                }
+                None => (target(rest)?, JointOverride::FailNow),
+            },
             "reset-fatigue" => (target(rest)?, JointOverride::ResetFatigue),
             "scale" => {
                 let (joint, value) = rest.split_once('=').ok_or_else(bad)?;
@@ -211,6 +225,7 @@ impl fmt::Display for DamageEdit {
         match self.change {
             JointOverride::Heal => write!(f, "heal:{target}"),
             JointOverride::FailNow => write!(f, "fail:{target}"),
+            JointOverride::FailTo(s) => write!(f, "fail:{target}={s}"),
             JointOverride::ResetFatigue => write!(f, "reset-fatigue:{target}"),
             JointOverride::SetScale(s) => write!(f, "scale:{target}={s}"),
         }
@@ -305,6 +320,18 @@ impl DamageState {
         actuator: usize,
         change: JointOverride,
     ) -> Result<(), DamageError> {
+        self.apply_change(step, actuator, change, None)
+    }
+
+    /// Applies a change before env step `step` runs, from `source` (a scenario's name) or by
+    /// hand (`None`).
+    pub fn apply_change(
+        &mut self,
+        step: usize,
+        actuator: usize,
+        change: JointOverride,
+        source: Option<&str>,
+    ) -> Result<(), DamageError> {
         if actuator >= N_ACTUATORS {
             return Err(DamageError::NoSuchActuator(actuator));
         }
@@ -322,6 +349,14 @@ impl DamageState {
                     self.scale[actuator] = self.condition.scale(&self.config.scales);
                 }
             }
+            JointOverride::FailTo(s) => {
+                if !(s.is_finite() && (0.0..=1.0).contains(&s)) {
+                    return Err(DamageError::BadScale(s));
+                }
+                self.triggered[actuator] = true;
+                self.manual[actuator] = false;
+                self.scale[actuator] = s;
+            }
             JointOverride::Heal => {
                 self.triggered[actuator] = false;
                 self.manual[actuator] = false;
@@ -331,6 +366,9 @@ impl DamageState {
             JointOverride::ResetFatigue => self.fatigue[actuator] = 0.0,
         }
         self.push_event(step, actuator, DamageEventKind::Override { change });
+        if let Some(e) = self.events.last_mut() {
+            e.source = source.map(str::to_string);
+        }
         Ok(())
     }
 
@@ -364,6 +402,7 @@ impl DamageState {
             fatigue: self.fatigue[actuator],
             scale: self.scale[actuator],
             kind,
+            source: None,
         });
     }
 

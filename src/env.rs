@@ -60,6 +60,8 @@ pub enum EnvError {
     Damage(#[from] DamageError),
     #[error(transparent)]
     Config(#[from] ConfigError),
+    #[error(transparent)]
+    Scenario(#[from] crate::scenario::ScenarioError),
 }
 
 /// One actuator's place in the model: actuator → joint → body.
@@ -140,6 +142,8 @@ pub struct AntEnv {
     last_xy: [f64; 2],
     done: bool,
     unstable_warnings: i32,
+    /// This episode's schedule, when the config names a scenario.
+    plan: Option<crate::scenario::ScenarioPlan>,
 }
 
 /// Everything that decides an env's future, restorable exactly: MuJoCo's integration state
@@ -154,6 +158,7 @@ pub struct EnvSnapshot {
     prev_distance: f64,
     last_xy: [f64; 2],
     done: bool,
+    plan: Option<crate::scenario::ScenarioPlan>,
 }
 
 impl EnvSnapshot {
@@ -198,7 +203,11 @@ impl AntEnv {
             last_xy: [0.0; 2],
             done: true,
             unstable_warnings: 0,
+            plan: None,
         };
+        if let Some(scenario) = &env.config.damage.scenario {
+            scenario.check(&env.joint_map())?;
+        }
         env.physics.forward();
         env.last_xy = env.xpos_torso_xy();
         env.prev_distance = env.goal_distance();
@@ -248,6 +257,24 @@ impl AntEnv {
         self.physics.qpos_mut().copy_from_slice(qpos);
         self.physics.qvel_mut().copy_from_slice(qvel);
         self.physics.forward();
+        // A scenario: its fatigue rule, and this episode's draws (from the episode's RNG, after
+        // the reset noise, so the start state is the same with or without it).
+        let mut condition = condition;
+        self.plan = None;
+        if let Some(scenario) = self.config.damage.scenario.clone() {
+            use crate::scenario::FatigueRule;
+            match scenario.fatigue {
+                FatigueRule::Off => self.damage.set_fatigue_triggers(false),
+                FatigueRule::On => self.damage.set_fatigue_triggers(true),
+                FatigueRule::OnWith(c) => {
+                    self.damage.set_fatigue_triggers(true);
+                    condition = c;
+                }
+            }
+            let seed: u64 = self.rng.random();
+            // Checked against this model at construction, so planning cannot fail here.
+            self.plan = scenario.plan(seed, &self.joint_map()).ok();
+        }
         self.damage.reset(condition);
         self.steps = 0;
         self.done = false;
@@ -268,6 +295,7 @@ impl AntEnv {
             prev_distance: self.prev_distance,
             last_xy: self.last_xy,
             done: self.done,
+            plan: self.plan.clone(),
         }
     }
 
@@ -287,6 +315,7 @@ impl AntEnv {
         self.prev_distance = snapshot.prev_distance;
         self.last_xy = snapshot.last_xy;
         self.done = snapshot.done;
+        self.plan = snapshot.plan.clone();
         // Only warnings raised by later steps count as divergence.
         self.unstable_warnings = self.divergence_warnings();
         Ok(())
@@ -299,6 +328,13 @@ impl AntEnv {
             return Err(EnvError::EpisodeOver);
         }
         let commanded = validate_action(action)?;
+        if let Some(plan) = &self.plan {
+            let name = plan.name.clone();
+            for (actuator, change) in plan.changes_before(self.steps) {
+                self.damage
+                    .apply_change(self.steps, actuator, change, Some(&name))?;
+            }
+        }
         let applied = self.damage.applied_action(&commanded);
         let xy_before = self.last_xy;
 
@@ -410,6 +446,20 @@ impl AntEnv {
     /// The legs' body names, in [`Self::foot_contacts`]'s order.
     pub fn leg_names(&self) -> &[String; N_LEGS] {
         &self.leg_names
+    }
+
+    /// Joint and leg names, for resolving scenario targets.
+    pub fn joint_map(&self) -> crate::scenario::JointMap {
+        crate::scenario::JointMap {
+            joints: self.damage.joint_names().to_vec(),
+            legs: self.leg_names.to_vec(),
+            leg_of: self.leg_of_actuator.to_vec(),
+        }
+    }
+
+    /// This episode's scenario schedule, if any.
+    pub fn scenario_plan(&self) -> Option<&crate::scenario::ScenarioPlan> {
+        self.plan.as_ref()
     }
 
     /// The leg (index into [`Self::leg_names`]) each actuator's joint moves.

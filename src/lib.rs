@@ -14,6 +14,7 @@ pub mod plots;
 pub mod policy;
 pub mod probe;
 pub mod rollout;
+pub mod scenario;
 pub mod telemetry;
 pub mod train;
 pub mod window;

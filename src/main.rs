@@ -59,6 +59,10 @@ struct EnvArgs {
     /// MJCF model to load instead of the bundled assets/ant.xml.
     #[arg(long, value_name = "FILE")]
     model: Option<PathBuf>,
+    /// Scripted damage: a scenario file, or a built-in one (ood-ankle, ood-leg, ood-diagonal,
+    /// ood-decay, ood-intermittent, ood-sides, ood-late-fault; docs/scenarios.md).
+    #[arg(long, value_name = "NAME|FILE")]
+    scenario: Option<String>,
 }
 
 impl EnvArgs {
@@ -69,6 +73,9 @@ impl EnvArgs {
         };
         if let Some(model) = &self.model {
             config.env.model_path = Some(model.clone());
+        }
+        if let Some(scenario) = &self.scenario {
+            config.damage.scenario = Some(gaitscope::scenario::Scenario::load(scenario)?);
         }
         Ok(config)
     }
@@ -101,8 +108,8 @@ struct RolloutArgs {
     /// Replay: the actions, [[8 numbers], ...].
     #[arg(long, value_name = "FILE", requires = "init_state")]
     actions: Option<PathBuf>,
-    /// One JSON line per step, the state after that step (replay, or a --checkpoint's
-    /// episodes with "lane" and the commanded "action").
+    /// One JSON line per step, the state after that step (replay; or the episodes of a
+    /// --checkpoint or built-in policy, with "lane" and the commanded "action").
     #[arg(long)]
     jsonl: bool,
     /// Run this checkpoint's deterministic policy instead of a built-in one.
@@ -575,9 +582,6 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
-    if args.jsonl && args.checkpoint.is_none() {
-        bail!("--jsonl needs --init-state and --actions (a replay) or --checkpoint");
-    }
     if let Some(dir) = &args.checkpoint {
         let policy = gaitscope::policy::Policy::load(dir, None)?;
         let fork = match (args.fork_at, &args.fork) {
@@ -635,12 +639,19 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
     let mut env = AntEnv::new(config, args.seed)?;
     for episode in 0..args.episodes {
         let seed = args.seed.wrapping_add(episode as u64);
-        let summary = rollout::run_builtin_episode(&mut env, args.policy, episode, seed)
+        let summary =
+            rollout::run_builtin_episode_with(&mut env, args.policy, episode, seed, |r| {
+                if args.jsonl {
+                    serde_json::to_writer(&mut out, r)?;
+                    writeln!(out)?;
+                }
+                Ok(())
+            })
             .with_context(|| format!("episode {episode} (seed {seed})"))?;
         if args.json {
             serde_json::to_writer(&mut out, &summary)?;
             writeln!(out)?;
-        } else {
+        } else if !args.jsonl {
             writeln!(out, "{summary}")?;
         }
         out.flush()?;

@@ -65,12 +65,32 @@ pub fn run_builtin_episode(
     episode: usize,
     seed: u64,
 ) -> Result<EpisodeSummary, EnvError> {
+    run_builtin_episode_with(env, policy, episode, seed, |_| Ok(())).map_err(|e| match e {
+        ReplayError::Env(e) => e,
+        other => EnvError::BadState(other.to_string()),
+    })
+}
+
+/// [`run_builtin_episode`], each step's line (lane `main`, with the commanded action) to `sink`.
+pub fn run_builtin_episode_with(
+    env: &mut AntEnv,
+    policy: BuiltinPolicy,
+    episode: usize,
+    seed: u64,
+    mut sink: impl FnMut(&LaneRecord) -> std::io::Result<()>,
+) -> Result<EpisodeSummary, ReplayError> {
     env.reset_with_seed(seed);
     let mut policy_rng = policy_rng(seed);
     let mut episode_return = 0.0;
     let last = loop {
         let out = env.step(&policy.act(&mut policy_rng))?;
         episode_return += out.reward.total;
+        sink(&LaneRecord {
+            lane: "main",
+            record: StepRecord::capture(env, &out),
+            action: out.commanded_action,
+        })
+        .map_err(ReplayError::Write)?;
         if out.done() {
             break out;
         }

@@ -139,6 +139,10 @@ pub enum Command {
     Fork(Vec<crate::damage::DamageEdit>),
     /// Stop the fork lane.
     EndFork,
+    /// Run this scenario from the next episode on (`None`: back to the condition alone).
+    SetScenario(Option<crate::scenario::Scenario>),
+    /// Write this episode's hand-made overrides (main model) as a scenario file.
+    SaveScenario(PathBuf),
     /// Stop the simulation thread.
     Quit,
 }
@@ -175,6 +179,8 @@ pub enum LiveError {
     Breakpoint(#[from] BreakpointError),
     #[error(transparent)]
     Rewind(#[from] crate::telemetry::RewindError),
+    #[error("cannot write scenario {path}: {reason}")]
+    SaveScenario { path: PathBuf, reason: String },
     #[error("the simulation thread stopped unexpectedly")]
     SimThreadPanicked,
     #[error("starting the simulation thread: {0}")]

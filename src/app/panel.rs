@@ -63,6 +63,10 @@ pub struct Panel {
     /// The fork's edits field (the `--fork` syntax) and its parse error.
     fork_text: String,
     fork_error: Option<String>,
+    /// The scenario field (a built-in name or a file) and the save path.
+    scenario_text: String,
+    save_text: String,
+    scenario_error: Option<String>,
 }
 
 impl Panel {
@@ -80,6 +84,9 @@ impl Panel {
             rewind_to: 0,
             fork_text: "heal:all".into(),
             fork_error: None,
+            scenario_text: String::new(),
+            save_text: "scenarios/saved.json".into(),
+            scenario_error: None,
         }
     }
 
@@ -272,8 +279,46 @@ impl Panel {
                 self.send(Command::SetSpeed(speed));
             }
         });
+        ui.horizontal(|ui| {
+            ui.label("Scenario");
+            ui.add(
+                egui::TextEdit::singleline(&mut self.scenario_text)
+                    .hint_text("ood-leg or a .json file")
+                    .desired_width(150.0),
+            );
+            if ui.button("Use").clicked() {
+                match crate::scenario::Scenario::load(self.scenario_text.trim()) {
+                    Ok(scenario) => {
+                        self.scenario_error = None;
+                        self.send(Command::SetScenario(Some(scenario)));
+                    }
+                    Err(e) => self.scenario_error = Some(e.to_string()),
+                }
+            }
+            if ui
+                .add_enabled(v.scenario.is_some(), egui::Button::new("No scenario"))
+                .clicked()
+            {
+                self.send(Command::SetScenario(None));
+            }
+            ui.label(v.scenario.as_deref().unwrap_or("none"));
+        });
+        ui.horizontal(|ui| {
+            ui.label("Save overrides to");
+            ui.add(egui::TextEdit::singleline(&mut self.save_text).desired_width(150.0));
+            if ui
+                .button("Save")
+                .on_hover_text("this episode's hand-made overrides as a scenario file (re-run with rollout --scenario)")
+                .clicked()
+            {
+                self.send(Command::SaveScenario(PathBuf::from(self.save_text.trim())));
+            }
+        });
+        if let Some(e) = &self.scenario_error {
+            ui.colored_label(Color32::from_rgb(230, 90, 60), e);
+        }
         ui.label(
-            RichText::new("Condition, seed and step limit apply at the next reset.")
+            RichText::new("Condition, seed, step limit and scenario apply at the next reset.")
                 .small()
                 .weak(),
         );

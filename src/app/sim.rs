@@ -197,6 +197,8 @@ pub struct Snapshot {
     pub branches: u64,
     /// Whether the main model's checkpoint has a probe.json (for `probe-flip`).
     pub has_probe: bool,
+    /// The scenario episodes run under (from the next reset once changed).
+    pub scenario: Option<String>,
     /// The simulation thread has stopped.
     pub stopped: bool,
 }
@@ -619,11 +621,45 @@ impl Sim {
                 }
             }
             Command::EndFork => self.session.end_fork().map(|_| ()).map_err(LiveError::from),
+            Command::SetScenario(scenario) => {
+                let mut config = self.session.config().clone();
+                config.damage.scenario = scenario;
+                self.session.set_config(config);
+                Ok(())
+            }
+            Command::SaveScenario(path) => self.save_scenario(&path),
             Command::Quit => Ok(()),
         };
         if let Err(e) = result {
             self.message = Some(e.to_string());
         }
+    }
+
+    /// The main lane's hand-made overrides of this episode, as a scenario file that replays
+    /// them (`rollout --scenario`), with this session's fatigue rule.
+    fn save_scenario(&mut self, path: &std::path::Path) -> Result<(), LiveError> {
+        let Some(main) = self.session.lanes().first() else {
+            return Ok(());
+        };
+        let env = main.env();
+        let fatigue = env.damage().fatigue_triggers().then(|| env.condition());
+        let name = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "live-session".into());
+        let value = crate::scenario::from_events(&name, fatigue, env.damage().events());
+        let text = serde_json::to_string_pretty(&value).map_err(|e| LiveError::SaveScenario {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
+        crate::policy::checkpoint::write_atomic(path, format!("{text}\n").as_bytes()).map_err(
+            |e| LiveError::SaveScenario {
+                path: path.to_owned(),
+                reason: e.to_string(),
+            },
+        )?;
+        self.message = Some(format!("saved the overrides to {}", path.display()));
+        Ok(())
     }
 
     fn set_breakpoints(&mut self, list: Vec<Breakpoint>) -> Result<(), LiveError> {
@@ -716,6 +752,13 @@ impl Sim {
             break_hit: self.break_hit.clone(),
             rewindable: self.session.rewindable(),
             branches: self.session.branches(),
+            scenario: self
+                .session
+                .config()
+                .damage
+                .scenario
+                .as_ref()
+                .map(|s| s.name.clone()),
             has_probe: self
                 .session
                 .lanes()

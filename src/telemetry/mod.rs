@@ -777,10 +777,16 @@ impl AntLogger {
                 ),
                 DamageEventKind::Override { change } => (
                     rerun::TextLogLevel::INFO,
-                    format!(
-                        "step {}: {} override {:?}; scale → {}",
-                        e.step, e.joint, change, e.scale
-                    ),
+                    match &e.source {
+                        Some(scenario) => format!(
+                            "step {}: {} scenario {scenario}: {change:?}; scale → {}",
+                            e.step, e.joint, e.scale
+                        ),
+                        None => format!(
+                            "step {}: {} override {:?}; scale → {}",
+                            e.step, e.joint, change, e.scale
+                        ),
+                    },
                 ),
             };
             self.rec.log(

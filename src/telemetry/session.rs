@@ -63,6 +63,7 @@ impl Actor {
                 GaitConfig {
                     damage: DamageConfig {
                         condition: requested.damage.condition,
+                        scenario: requested.damage.scenario.clone(),
                         ..trained.damage.clone()
                     },
                     env: EnvConfig {
