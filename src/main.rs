@@ -302,9 +302,18 @@ struct EvalArgs {
     checkpoints: Vec<PathBuf>,
     #[arg(long, default_value_t = 100)]
     episodes: usize,
-    /// Conditions to evaluate (default: all three).
+    /// Conditions to evaluate (default: all three; with --scenario or --suite: healthy, the
+    /// reference the scenarios are measured against).
     #[arg(long, num_args = 1.., value_name = "healthy|mild|severe")]
     conditions: Vec<Condition>,
+    /// Scenarios to evaluate as well, each its own column: a file or a built-in name (repeat
+    /// the flag for several).
+    #[arg(long, value_name = "NAME|FILE")]
+    scenario: Vec<String>,
+    /// A built-in suite of scenarios: ood (one ankle, one leg, diagonal legs, decay,
+    /// intermittent fault, sides mild/severe, a late fault; docs/scenarios.md).
+    #[arg(long, value_name = "ood", long_help = suite_help())]
+    suite: Vec<String>,
     #[arg(long, default_value_t = 500)]
     max_steps: usize,
     /// First evaluation seed; episode i uses seed + i for every model.
@@ -498,7 +507,8 @@ fn run(cli: Cli) -> Result<()> {
                 checkpoints: vec![checkpoint],
                 episodes,
                 seed_base: gaitscope::eval::EVAL_SEED_BASE,
-                conditions: Condition::ALL.to_vec(),
+                conditions: Condition::ALL.map(Into::into).to_vec(),
+                scenarios: Vec::new(),
                 max_steps: 500,
                 threads,
             };
@@ -933,6 +943,17 @@ fn view_command(args: ViewArgs) -> Result<()> {
     Ok(())
 }
 
+/// `--suite`'s long help: each built-in scenario with its one-line description.
+fn suite_help() -> String {
+    let mut help = String::from(
+        "A built-in suite of scenarios, each its own column (fatigue off in all):\n\nood:",
+    );
+    for s in gaitscope::scenario::Scenario::suite("ood").unwrap_or_default() {
+        help += &format!("\n  {:<18} {}", s.name, s.description);
+    }
+    help
+}
+
 fn import_sb3_command(args: ImportSb3Args) -> Result<()> {
     let summary = sb3::import_sb3(&args.model, &args.out, args.encoder)?;
     let net = &summary.net;
@@ -960,16 +981,36 @@ fn eval_command(args: EvalArgs) -> Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let conditions = if args.conditions.is_empty() {
-        Condition::ALL.to_vec()
-    } else {
-        args.conditions
+    use gaitscope::eval::Case;
+    let scenarios = gaitscope::scenario::collect(&args.scenario, &args.suite)?;
+    for (i, s) in scenarios.iter().enumerate() {
+        if scenarios[..i].iter().any(|t| t.name == s.name) {
+            bail!(
+                "two scenarios are named '{}': each needs its own name",
+                s.name
+            );
+        }
+        // Every joint and set name fits the Ant, before minutes of evaluation.
+        let mut config = GaitConfig::default();
+        config.damage.scenario = Some(s.clone());
+        AntEnv::new(config, 0)?;
+    }
+    let conditions: Vec<Condition> = match (args.conditions.is_empty(), scenarios.is_empty()) {
+        (false, _) => args.conditions,
+        (true, true) => Condition::ALL.to_vec(),
+        (true, false) => vec![Condition::Healthy],
     };
+    let cases: Vec<Case> = conditions
+        .into_iter()
+        .map(Case::from)
+        .chain(scenarios.iter().map(|s| Case::scenario(&s.name)))
+        .collect();
     let opts = gaitscope::eval::EvalOptions {
         checkpoints: args.checkpoints,
         episodes: args.episodes,
         seed_base: args.seed,
-        conditions,
+        conditions: cases,
+        scenarios,
         max_steps: args.max_steps,
         threads,
     };

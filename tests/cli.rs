@@ -289,8 +289,15 @@ fn missing_files_and_bad_flags_are_clear() {
         stderr(&out)
     );
 
-    let out = gaitscope(&["rollout", "--jsonl"]);
-    assert!(!out.status.success(), "--jsonl needs replay inputs");
+    // A built-in policy's steps as JSON lines (the random policy's commanded action included).
+    let out = gaitscope(&["rollout", "--jsonl", "--episodes", "1", "--max-steps", "3"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3);
+    assert!(lines.iter().all(|l| l["lane"] == "main" && l["action"].as_array().unwrap().len() == 8));
 
     let out = gaitscope(&["rollout", "--model", "/no/such/ant.xml"]);
     assert!(

@@ -31,7 +31,8 @@ fn options(checkpoints: Vec<std::path::PathBuf>, threads: usize) -> EvalOptions 
         checkpoints,
         episodes: 6,
         seed_base: 77,
-        conditions: vec![Condition::Healthy, Condition::Severe],
+        conditions: vec![Condition::Healthy.into(), Condition::Severe.into()],
+        scenarios: Vec::new(),
         max_steps: 60,
         threads,
     }
@@ -54,7 +55,7 @@ fn eval_is_deterministic_paired_and_writes_its_outputs() {
         let seeds: Vec<u64> = a
             .episodes
             .iter()
-            .filter(|e| e.model == model && e.condition == Condition::Severe)
+            .filter(|e| e.model == model && e.condition == Condition::Severe.into())
             .map(|e| e.seed)
             .collect();
         let mut sorted = seeds.clone();

@@ -53,29 +53,10 @@ fn every_edit_kind_applies_at_its_exact_step() {
     // The scale each joint runs step t with, by hand.
     let expected = |j: usize, t: usize| -> f64 {
         match j {
-            _ if j == a3 => {
-                if t >= 3 {
-                    0.3
-                } else {
-                    1.0
-                }
-            }
-            _ if j == h1 => {
-                if (5..8).contains(&t) {
-                    0.2
-                } else {
-                    1.0
-                }
-            }
-            _ if j == h2 => {
-                if t < 10 {
-                    1.0
-                } else if t <= 14 {
-                    1.0 - (t - 10) as f64 / 4.0
-                } else {
-                    0.0
-                }
-            }
+            _ if j == a3 && t >= 3 => 0.3,
+            _ if j == h1 && (5..8).contains(&t) => 0.2,
+            _ if j == h2 && (10..=14).contains(&t) => 1.0 - (t - 10) as f64 / 4.0,
+            _ if j == h2 && t > 14 => 0.0,
             // 0.5 at 4, 1.0 at 6, 0.5 at 8, then it stays (until 9).
             _ if j == a4 => match t {
                 0..4 => 1.0,
@@ -304,4 +285,51 @@ fn overrides_saved_from_live_replay_step_for_step_in_rollout() {
     };
     assert!((scale(3, 7) - 0.1).abs() < 1e-12 && (scale(8, 2) - 0.4).abs() < 1e-12);
     assert!((scale(15, 7) - 1.0).abs() < 1e-12);
+}
+
+#[test]
+fn eval_runs_the_ood_suite_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let baseline = concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/baseline");
+    let out = Process::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["eval", "--checkpoint", baseline])
+        .arg(lstm())
+        .args([
+            "--suite",
+            "ood",
+            "--scenario",
+            "ood-leg",
+            "--episodes",
+            "2",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    // ood-leg twice (the suite has it) is refused: each column needs its own name.
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("two scenarios are named 'ood-leg'"));
+    let out = Process::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["eval", "--checkpoint", baseline])
+        .arg(lstm())
+        .args(["--suite", "ood", "--episodes", "2", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("eval.json")).unwrap())
+            .unwrap();
+    let episodes = report["episodes"].as_array().unwrap();
+    assert_eq!(episodes.len(), 2 * 2 * 8, "2 models × 8 cases × 2 episodes");
+    let cases: std::collections::BTreeSet<&str> = episodes
+        .iter()
+        .map(|e| e["condition"].as_str().unwrap())
+        .collect();
+    assert!(cases.contains("healthy") && cases.contains("ood-diagonal") && cases.len() == 8);
+    assert_eq!(report["comparisons"].as_array().unwrap().len(), 8);
 }

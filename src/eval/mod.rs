@@ -23,6 +23,46 @@ use crate::policy::{ActionMode, EncoderKind, Policy};
 use crate::window::ContextWindow;
 use stats::{McNemar, Rate, mcnemar, recovery_fraction};
 
+/// What an evaluation cell runs under: a damage condition (fatigue as in training), or a
+/// scenario (by name; `--scenario`, `--suite ood`). Names are interned for the process's
+/// lifetime (a handful per evaluation) so cells stay `Copy` keys.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Case {
+    Condition(Condition),
+    Scenario(&'static str),
+}
+
+impl Case {
+    pub fn scenario(name: &str) -> Self {
+        Case::Scenario(Box::leak(name.to_string().into_boxed_str()))
+    }
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Case::Condition(c) => c.name(),
+            Case::Scenario(s) => s,
+        }
+    }
+}
+
+impl std::fmt::Display for Case {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl Serialize for Case {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.serialize_str(self.name())
+    }
+}
+
+impl From<Condition> for Case {
+    fn from(c: Condition) -> Self {
+        Case::Condition(c)
+    }
+}
+
 /// Evaluation seeds start here: training seeds are small integers and streams derived from them.
 pub const EVAL_SEED_BASE: u64 = 1_000_000_000;
 /// Success is also reported within these step budgets (the paper's).
@@ -52,7 +92,9 @@ pub struct EvalOptions {
     pub checkpoints: Vec<PathBuf>,
     pub episodes: usize,
     pub seed_base: u64,
-    pub conditions: Vec<Condition>,
+    pub conditions: Vec<Case>,
+    /// The scenarios of the [`Case::Scenario`] cases, by name.
+    pub scenarios: Vec<crate::scenario::Scenario>,
     pub max_steps: usize,
     pub threads: usize,
 }
@@ -66,7 +108,7 @@ pub struct EpisodeRecord {
     /// The run's training seed (its checkpoint's).
     pub train_seed: u64,
     pub encoder: EncoderKind,
-    pub condition: Condition,
+    pub condition: Case,
     pub episode: usize,
     pub seed: u64,
     pub success: bool,
@@ -93,7 +135,7 @@ impl EpisodeRecord {
 pub struct CellSummary {
     pub model: String,
     pub encoder: EncoderKind,
-    pub condition: Condition,
+    pub condition: Case,
     /// Success within each budget of [`SUCCESS_BUDGETS`].
     pub success: BTreeMap<usize, Rate>,
     pub mean_final_distance: f64,
@@ -106,7 +148,7 @@ pub struct CellSummary {
 pub struct Comparison {
     pub baseline: String,
     pub encoder: String,
-    pub condition: Condition,
+    pub condition: Case,
     /// Paired test on success@500: b = baseline only, c = encoder only.
     pub mcnemar: McNemar,
 }
@@ -190,7 +232,20 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         let started = Instant::now();
         for &condition in &opts.conditions {
             let mut config = policy.meta.env.clone();
-            config.damage.condition = ConditionChoice::Fixed(condition);
+            match condition {
+                Case::Condition(c) => config.damage.condition = ConditionChoice::Fixed(c),
+                Case::Scenario(name) => {
+                    // A scenario whose fatigue rule names no condition runs under severe.
+                    config.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+                    config.damage.scenario = Some(
+                        opts.scenarios
+                            .iter()
+                            .find(|s| s.name == name)
+                            .cloned()
+                            .ok_or_else(|| EvalError::Options(format!("no scenario '{name}'")))?,
+                    );
+                }
+            }
             config.env.max_episode_steps = opts.max_steps;
             let chunk = seeds.len().div_ceil(opts.threads.max(1) * 2).max(1);
             let batches: Vec<Result<Vec<EpisodeRecord>, EvalError>> = pool.install(|| {
@@ -216,7 +271,7 @@ pub fn run_lockstep(
     policy: &Policy,
     label: &str,
     config: &GaitConfig,
-    condition: Condition,
+    condition: Case,
     seeds: &[u64],
     first_episode: usize,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
@@ -296,7 +351,7 @@ pub fn run_lockstep(
 pub(crate) fn episodes_of<'a>(
     episodes: &'a [EpisodeRecord],
     model: &str,
-    condition: Condition,
+    condition: Case,
 ) -> Vec<&'a EpisodeRecord> {
     let mut v: Vec<&EpisodeRecord> = episodes
         .iter()
@@ -318,7 +373,7 @@ fn summarize(
             models.push((e.model.clone(), e.encoder));
         }
     }
-    let cell = |model: &str, condition: Condition| episodes_of(&episodes, model, condition);
+    let cell = |model: &str, condition: Case| episodes_of(&episodes, model, condition);
     let mean = |v: &[f64]| {
         if v.is_empty() {
             f64::NAN
@@ -366,7 +421,7 @@ fn summarize(
     let mut comparisons = Vec::new();
     let mut rf = BTreeMap::new();
     if let Some(base) = &baseline {
-        let rate = |model: &str, c: Condition| {
+        let rate = |model: &str, c: Case| {
             cells
                 .iter()
                 .find(|x| x.model == model && x.condition == c)
@@ -387,9 +442,9 @@ fn summarize(
                 });
             }
             if let (Some(es), Some(bs), Some(bh)) = (
-                rate(model, Condition::Severe),
-                rate(base, Condition::Severe),
-                rate(base, Condition::Healthy),
+                rate(model, Case::Condition(Condition::Severe)),
+                rate(base, Case::Condition(Condition::Severe)),
+                rate(base, Case::Condition(Condition::Healthy)),
             ) {
                 let value = recovery_fraction(es, bs, bh);
                 rf.insert(
@@ -426,7 +481,7 @@ impl EvalReport {
                 models.push(&c.model);
             }
         }
-        let conditions: Vec<Condition> = {
+        let conditions: Vec<Case> = {
             let mut v = Vec::new();
             for c in &self.cells {
                 if !v.contains(&c.condition) {
@@ -435,10 +490,9 @@ impl EvalReport {
             }
             v
         };
-        let get =
-            |m: &str, c: Condition| self.cells.iter().find(|x| x.model == m && x.condition == c);
+        let get = |m: &str, c: Case| self.cells.iter().find(|x| x.model == m && x.condition == c);
         let mut s = format!(
-            "**Success@{} by damage condition** ({} episodes per cell, same seeds for every model; 95 % Wilson intervals)\n\n| model |",
+            "**Success@{} by damage condition or scenario** ({} episodes per cell, same seeds for every model; 95 % Wilson intervals)\n\n| model |",
             self.max_steps, self.episodes_per_cell
         );
         for c in &conditions {
@@ -528,7 +582,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
     })?;
     write_atomic(&json_path, &json)?;
     let mut models: Vec<&str> = Vec::new();
-    let mut conditions: Vec<Condition> = Vec::new();
+    let mut conditions: Vec<Case> = Vec::new();
     for c in &report.cells {
         if !models.contains(&c.model.as_str()) {
             models.push(&c.model);
@@ -538,7 +592,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         }
     }
     let names: Vec<&str> = conditions.iter().map(|c| c.name()).collect();
-    let get = |m: &str, c: Condition| {
+    let get = |m: &str, c: Case| {
         report
             .cells
             .iter()
@@ -563,7 +617,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
     plots::error_bars(
         &success_path,
         &format!(
-            "Success@{} by damage condition (95 % Wilson)",
+            "Success@{} by damage condition or scenario (95 % Wilson)",
             report.max_steps
         ),
         "success (%)",
@@ -604,7 +658,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
     let distance_path = out.join("final_distance_by_condition.png");
     plots::error_bars(
         &distance_path,
-        "Final distance to goal by damage condition (mean ± 95 % CI)",
+        "Final distance to goal by damage condition or scenario (mean ± 95 % CI)",
         "distance (m)",
         &names,
         &distance,
@@ -623,7 +677,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
 /// seed's rate; and the failure modes as stacked bars.
 fn across_seeds_figures(
     seeds: &seeds::AcrossSeeds,
-    conditions: &[Condition],
+    conditions: &[Case],
     out: &Path,
 ) -> Result<Vec<PathBuf>, EvalError> {
     let mut groups: Vec<&str> = Vec::new();
@@ -632,7 +686,7 @@ fn across_seeds_figures(
             groups.push(&g.group);
         }
     }
-    let get = |g: &str, c: Condition| {
+    let get = |g: &str, c: Case| {
         seeds
             .groups
             .iter()
@@ -729,7 +783,7 @@ mod tests {
             comparisons: vec![Comparison {
                 baseline: "baseline".into(),
                 encoder: "encoder".into(),
-                condition: Condition::Severe,
+                condition: Case::Condition(Condition::Severe),
                 mcnemar: mcnemar(std::iter::empty()),
             }],
             recovery_fraction: BTreeMap::from([("encoder".to_string(), rf)]),

@@ -10,6 +10,7 @@ use rand_distr::{Binomial, Distribution};
 use serde::Serialize;
 use std::collections::BTreeMap;
 
+use super::Case;
 use super::stats::{McNemar, Rate, mcnemar_counts, recovery_fraction};
 use super::{EpisodeRecord, RecoveryFraction, SUCCESS_BUDGETS, episodes_of};
 use crate::damage::Condition;
@@ -222,7 +223,7 @@ pub struct SeedCell {
 pub struct GroupCell {
     pub group: String,
     pub encoder: EncoderKind,
-    pub condition: Condition,
+    pub condition: Case,
     pub runs: Vec<SeedCell>,
     /// Mean over seeds of success within each budget, with its stratified bootstrap interval.
     pub success: BTreeMap<usize, Interval>,
@@ -238,7 +239,7 @@ pub struct GroupCell {
 pub struct GroupComparison {
     pub baseline: String,
     pub encoder: String,
-    pub condition: Condition,
+    pub condition: Case,
     /// (training seed, McNemar: b = baseline only, c = encoder only).
     pub per_seed: Vec<(u64, McNemar)>,
     pub pooled: McNemar,
@@ -265,7 +266,7 @@ pub struct AcrossSeeds {
 }
 
 /// Groups the episodes by model and compares each encoder group with the baseline group.
-pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> AcrossSeeds {
+pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSeeds {
     // Groups and their runs in the order they were evaluated; runs (training seed, label)
     // sorted by training seed.
     type Group = (String, EncoderKind, Vec<(u64, String)>);
@@ -285,7 +286,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> Acr
     for g in &mut groups {
         g.2.sort();
     }
-    let run_episodes = |model: &str, condition: Condition| episodes_of(episodes, model, condition);
+    let run_episodes = |model: &str, condition: Case| episodes_of(episodes, model, condition);
     let success_rate = |eps: &[&EpisodeRecord], budget: usize| {
         Rate::new(
             eps.iter().filter(|e| e.success_within(budget)).count(),
@@ -356,7 +357,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> Acr
     let mut recovery = Vec::new();
     let baseline = groups.iter().find(|(_, k, _)| *k == EncoderKind::None);
     if let Some((base, _, base_runs)) = baseline {
-        let cell = |g: &str, c: Condition| cells.iter().find(|x| x.group == g && x.condition == c);
+        let cell = |g: &str, c: Case| cells.iter().find(|x| x.group == g && x.condition == c);
         for (group, _, runs) in groups.iter().filter(|(_, k, _)| *k != EncoderKind::None) {
             let paired: Vec<(u64, &String, &String)> = runs
                 .iter()
@@ -401,7 +402,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> Acr
                     per_seed,
                 });
             }
-            let rate = |model: &str, c: Condition| {
+            let rate = |model: &str, c: Case| {
                 let eps = run_episodes(model, c);
                 (!eps.is_empty()).then(|| success_rate(&eps, 500).rate)
             };
@@ -417,18 +418,18 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Condition]) -> Acr
                     Some((
                         seed,
                         rf(
-                            rate(enc_model, Condition::Severe)?,
-                            rate(base_model, Condition::Severe)?,
-                            rate(base_model, Condition::Healthy)?,
+                            rate(enc_model, Case::Condition(Condition::Severe))?,
+                            rate(base_model, Case::Condition(Condition::Severe))?,
+                            rate(base_model, Case::Condition(Condition::Healthy))?,
                         ),
                     ))
                 })
                 .collect();
-            let mean_of = |g: &str, c: Condition| cell(g, c).map(|x| x.success[&500].mean);
+            let mean_of = |g: &str, c: Case| cell(g, c).map(|x| x.success[&500].mean);
             if let (Some(es), Some(bs), Some(bh)) = (
-                mean_of(group, Condition::Severe),
-                mean_of(base, Condition::Severe),
-                mean_of(base, Condition::Healthy),
+                mean_of(group, Case::Condition(Condition::Severe)),
+                mean_of(base, Case::Condition(Condition::Severe)),
+                mean_of(base, Case::Condition(Condition::Healthy)),
             ) {
                 recovery.push(GroupRecovery {
                     encoder: group.clone(),
@@ -663,7 +664,7 @@ mod tests {
             group: "m".into(),
             train_seed: 0,
             encoder: EncoderKind::Lstm,
-            condition: Condition::Severe,
+            condition: Case::Condition(Condition::Severe),
             episode: 0,
             seed: 0,
             success,
@@ -748,7 +749,7 @@ mod tests {
             run("baseline-s1", EncoderKind::None, 1, &[f, f, t, t]),
         ]
         .concat();
-        let report = across_seeds(&episodes, &[Condition::Severe]);
+        let report = across_seeds(&episodes, &[Case::Condition(Condition::Severe)]);
         let cmp = &report.comparisons[0];
         assert_eq!(
             (cmp.baseline.as_str(), cmp.encoder.as_str()),
