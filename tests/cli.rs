@@ -297,7 +297,11 @@ fn missing_files_and_bad_flags_are_clear() {
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
     assert_eq!(lines.len(), 3);
-    assert!(lines.iter().all(|l| l["lane"] == "main" && l["action"].as_array().unwrap().len() == 8));
+    assert!(
+        lines
+            .iter()
+            .all(|l| l["lane"] == "main" && l["action"].as_array().unwrap().len() == 8)
+    );
 
     let out = gaitscope(&["rollout", "--model", "/no/such/ant.xml"]);
     assert!(

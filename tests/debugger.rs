@@ -224,7 +224,7 @@ fn chunks_of(sim: SimHandle, storage: rerun::sink::MemorySinkStorage) -> Vec<Chu
 }
 
 #[test]
-fn rewinding_repeats_the_original_steps_bit_for_bit_on_a_new_branch() {
+fn rewinding_repeats_the_original_steps_bit_for_bit_under_a_branch_root() {
     let (sim, storage) = spawn(0, vec![Breakpoint::Step(30)]);
     assert_eq!(run_to_break(&sim), 30);
     let original = sim.snapshot();
@@ -242,33 +242,51 @@ fn rewinding_repeats_the_original_steps_bit_for_bit_on_a_new_branch() {
     assert_eq!(again.lanes[0].fatigue, original.lanes[0].fatigue);
     assert_eq!(again.lanes[0].distance, original.lanes[0].distance);
     assert_eq!(again.lanes[0].commanded, original.lanes[0].commanded);
-    // The stream: steps 11..=30 of the first branch at their global steps, the second branch
-    // after a one-step gap (global 30 + 1), bit for bit the same values.
+    assert_eq!(again.lanes[0].root, "ant_b1");
+    // A new episode goes back to the model's own root, after the furthest step logged.
+    assert!(sim.send(Command::Reset));
+    assert!(sim.send(Command::StepOnce));
+    let s = sim.wait_for(WAIT, |s| s.lanes[0].step == 1 && s.episodes == 2);
+    assert_eq!((s.lanes[0].root.as_str(), s.global_step), ("ant", 31));
+    // The stream: the original history under /ant, the branch under /ant_b1 at the same steps
+    // (overlaid in the plots), bit for bit the same values from step 11 on.
     let chunks = chunks_of(sim, storage);
-    for entity in [
-        "/ant/joints/fatigue",
-        "/ant/goal/distance",
-        "/ant/actions/applied",
-    ] {
-        let rows = series(&chunks, entity);
+    for leaf in ["joints/fatigue", "goal/distance", "actions/applied"] {
+        let original = series(&chunks, &format!("/ant/{leaf}"));
+        let branch = series(&chunks, &format!("/ant_b1/{leaf}"));
+        assert_eq!(
+            original.len(),
+            31,
+            "{leaf}: the history stays (and episode 2's step)"
+        );
+        let steps: Vec<i64> = branch.keys().copied().collect();
+        assert_eq!(
+            steps,
+            (11..=30).collect::<Vec<_>>(),
+            "{leaf}: the branch's steps"
+        );
         for step in 11..=30i64 {
-            let first = &rows[&step];
-            let second = rows
-                .get(&(step + 21))
-                .unwrap_or_else(|| panic!("{entity} @ {step}"));
-            assert_eq!(first, second, "{entity}, episode step {step}");
+            assert_eq!(original[&step], branch[&step], "{leaf}, step {step}");
         }
-        assert!(!rows.contains_key(&31), "{entity}: the gap has no data");
     }
-    let notes = text_logs(&chunks, "/ant/events");
+    let notes = text_logs(&chunks, "/ant_b1/events");
     assert!(
         notes
             .iter()
-            .any(|(level, text)| level == "BRANCH" && text.contains("rewound to step 10")),
+            .any(|(level, text)| level == "BRANCH"
+                && text.contains("branch 1: ant rewound to step 10")),
         "{notes:?}"
     );
-    let breaks = notes.iter().filter(|(level, _)| level == "BREAK").count();
-    assert_eq!(breaks, 2, "each hit is an event: {notes:?}");
+    let breaks: usize = ["/ant/events", "/ant_b1/events"]
+        .iter()
+        .map(|e| {
+            text_logs(&chunks, e)
+                .iter()
+                .filter(|(l, _)| l == "BREAK")
+                .count()
+        })
+        .sum();
+    assert_eq!(breaks, 2, "each hit is an event");
 }
 
 #[test]

@@ -180,9 +180,16 @@ fn view_path(view: &rerun::blueprint::ContainerLike) -> Option<String> {
 /// The layout, with its properties: each 3-D view follows its Ant's torso, and time-series
 /// legends are hidden (they covered the lines; hovering a line names it).
 pub fn default_layout(roots: &[String]) -> Layout {
+    layout_with(roots, roots)
+}
+
+/// The layout with a 3-D view per `world_roots` and every root of `plot_roots` overlaid in
+/// the plots (a rewind's branches beside the history they left).
+pub fn layout_with(world_roots: &[String], plot_roots: &[String]) -> Layout {
+    let roots = world_roots;
     let mut properties: Vec<(String, Box<dyn rerun::AsComponents + Send>)> = Vec::new();
     let paths = |leaves: &[&str]| -> Vec<String> {
-        roots
+        plot_roots
             .iter()
             .flat_map(|r| leaves.iter().map(move |l| format!("/{r}/{l}")))
             .collect()
@@ -284,8 +291,17 @@ pub fn default_layout(roots: &[String]) -> Layout {
 /// blueprint's messages are built on a memory stream, the properties logged into the same
 /// blueprint store, and all of it goes out before the activation command.
 pub fn send_layout(rec: &RecordingStream, roots: &[String]) -> Result<(), TelemetryError> {
+    send_layout_with(rec, roots, roots)
+}
+
+/// [`send_layout`] with [`layout_with`]'s split of 3-D views and plotted roots.
+pub fn send_layout_with(
+    rec: &RecordingStream,
+    world_roots: &[String],
+    plot_roots: &[String],
+) -> Result<(), TelemetryError> {
     use rerun::log::LogMsg;
-    let layout = default_layout(roots);
+    let layout = layout_with(world_roots, plot_roots);
     let (scratch, storage) = RecordingStreamBuilder::new(APP_ID).memory()?;
     layout.blueprint.send(
         &scratch,
@@ -435,6 +451,15 @@ impl AntLogger {
     pub fn with_world_offset(mut self, offset: [f32; 3]) -> Self {
         self.world_offset = offset;
         self
+    }
+
+    /// The same model's logger under another root (a rewind's branch): same offset and probe,
+    /// the drawing state (trails, logged events) carried over.
+    pub fn branch(&self, root: &str, env: &AntEnv) -> Self {
+        let mut logger = AntLogger::new(self.rec.clone(), root, env, self.probe.clone())
+            .with_world_offset(self.world_offset);
+        logger.continue_from(self);
+        logger
     }
 
     pub fn probe(&self) -> Option<&ProbeFile> {

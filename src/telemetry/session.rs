@@ -132,6 +132,10 @@ impl LaneSnapshot {
 pub struct Lane {
     actor: Actor,
     root: String,
+    /// The root this lane started the episode under (a rewind's branch logs under another).
+    base_root: String,
+    /// That root's logger while a branch logs under its own.
+    base_logger: Option<AntLogger>,
     env: AntEnv,
     logger: AntLogger,
     window: ContextWindow,
@@ -170,6 +174,8 @@ impl Lane {
         let obs = env.observation();
         Ok(Self {
             actor: spec.actor,
+            base_root: spec.root.clone(),
+            base_logger: None,
             root: spec.root,
             env,
             logger,
@@ -312,8 +318,13 @@ pub struct Session {
     keep_history: bool,
     /// The model lanes' states before each step of this episode: index k = after k steps.
     history: Vec<Vec<LaneSnapshot>>,
-    /// Rewinds in this recording (each starts a new branch on the timeline).
+    /// Rewinds in this recording (each starts a new branch under its own roots).
     branches: u64,
+    /// The global step the current episode started at, and the furthest any branch reached.
+    episode_start: u64,
+    global_max: u64,
+    /// Roots overlaid in the plots: the lanes', and this episode's earlier branches.
+    plot_roots: Vec<String>,
 }
 
 impl Session {
@@ -323,10 +334,11 @@ impl Session {
         specs: Vec<LaneSpec>,
         config: GaitConfig,
     ) -> Result<Self, RecordError> {
-        let lanes = specs
+        let lanes: Vec<Lane> = specs
             .into_iter()
             .map(|spec| Lane::new(spec, &rec, &config, 0))
             .collect::<Result<Vec<_>, _>>()?;
+        let plot_roots = lanes.iter().map(|l| l.root.clone()).collect();
         Ok(Self {
             rec,
             lanes,
@@ -340,6 +352,9 @@ impl Session {
             keep_history: false,
             history: Vec::new(),
             branches: 0,
+            episode_start: 0,
+            global_max: 0,
+            plot_roots,
         })
     }
 
@@ -366,14 +381,26 @@ impl Session {
         self.lanes.iter().filter(|l| l.fork_of.is_none()).count()
     }
 
+    /// Sends the layout for the lanes now, with this episode's earlier branches in the plots.
+    fn send_current_layout(&self) -> Result<(), TelemetryError> {
+        let roots: Vec<String> = self.lanes.iter().map(|l| l.root.clone()).collect();
+        let mut plots = self.plot_roots.clone();
+        plots.extend(
+            roots
+                .iter()
+                .filter(|r| !self.plot_roots.contains(r))
+                .cloned(),
+        );
+        super::send_layout_with(&self.rec, &roots, &plots)
+    }
+
     fn drop_fork(&mut self) -> Result<bool, RecordError> {
         let before = self.lanes.len();
         self.lanes.retain(|l| l.fork_of.is_none());
         if self.lanes.len() == before {
             return Ok(false);
         }
-        let roots: Vec<String> = self.lanes.iter().map(|l| l.root.clone()).collect();
-        super::send_layout(&self.rec, &roots)?;
+        self.send_current_layout()?;
         Ok(true)
     }
 
@@ -382,9 +409,10 @@ impl Session {
         self.drop_fork()
     }
 
-    /// Goes back to the state after `step` steps of this episode and continues from there: the
-    /// new steps follow on the `step` timeline after a one-step gap (a new branch), so the
-    /// original history stays in the recording, earlier on the timeline. A fork lane ends.
+    /// Goes back to the state after `step` steps of this episode and continues from there as a
+    /// new branch: each model logs under a new root (`ant_b1`, …) at the same `step` times as
+    /// the history it leaves, which stays in the recording, overlaid in the plots to compare.
+    /// A fork lane ends.
     pub fn rewind(&mut self, step: usize) -> Result<(), RewindError> {
         let now = self.lanes.first().map_or(0, |l| l.env.steps());
         if step == now && step == self.history.len() {
@@ -398,21 +426,38 @@ impl Session {
         };
         self.drop_fork()?;
         self.branches += 1;
+        let branch = self.branches;
         let episode = self.episodes_started.saturating_sub(1);
-        // The gap: every series breaks here instead of joining the old branch to the new one.
-        self.global_step += 1;
+        self.global_step = self.episode_start + step as u64;
+        let mut new_roots = Vec::new();
         for (lane, state) in self.lanes.iter_mut().zip(&states) {
             lane.restore(state)?;
-            lane.logger.set_time(self.global_step, episode);
-            lane.logger.log_series_gap()?;
-            lane.logger.log_note(
+            let root = format!("{}_b{branch}", lane.base_root);
+            let mut logger = lane.logger.branch(&root, &lane.env);
+            logger.set_time(self.global_step, episode);
+            let mut meta = episode_meta(self.fatigue_triggers, self.seed, &lane.actor, &lane.env);
+            meta.checkpoint = format!(
+                "{} (branch {branch}: rewound to step {step})",
+                meta.checkpoint
+            );
+            logger.log_episode(&meta, &lane.env, None)?;
+            logger.continue_from(&lane.logger);
+            logger.log_note(
                 super::NoteLevel::Branch,
                 &format!(
-                    "branch {}: rewound to step {step} of episode {episode}",
-                    self.branches
+                    "branch {branch}: {} rewound to step {step} of episode {episode}",
+                    lane.root
                 ),
             )?;
+            let previous = std::mem::replace(&mut lane.logger, logger);
+            if lane.base_logger.is_none() {
+                lane.base_logger = Some(previous);
+            }
+            lane.root = root.clone();
+            new_roots.push(root);
         }
+        self.plot_roots.extend(new_roots);
+        self.send_current_layout()?;
         self.history.truncate(step);
         Ok(())
     }
@@ -465,8 +510,7 @@ impl Session {
         lane.logger.continue_from(&self.lanes[0].logger);
         lane.logger.log_note(super::NoteLevel::Branch, &described)?;
         self.lanes.push(lane);
-        let roots: Vec<String> = self.lanes.iter().map(|l| l.root.clone()).collect();
-        super::send_layout(&self.rec, &roots)?;
+        self.send_current_layout()?;
         Ok(())
     }
 
@@ -505,6 +549,7 @@ impl Session {
             .into_iter()
             .map(|spec| Lane::new(spec, &self.rec, &self.config, self.seed))
             .collect::<Result<Vec<_>, _>>()?;
+        self.plot_roots = roots;
         self.config_changed = false;
         Ok(())
     }
@@ -518,6 +563,20 @@ impl Session {
     pub fn start_episode(&mut self, seed: u64) -> Result<(), RecordError> {
         self.drop_fork()?;
         self.history.clear();
+        // After branches: back to the models' own roots, on after the furthest step logged.
+        let branched = self.lanes.iter().any(|l| l.base_logger.is_some());
+        for lane in &mut self.lanes {
+            if let Some(base) = lane.base_logger.take() {
+                lane.logger = base;
+                lane.root = lane.base_root.clone();
+            }
+        }
+        self.plot_roots = self.lanes.iter().map(|l| l.root.clone()).collect();
+        if branched {
+            self.send_current_layout()?;
+        }
+        self.global_step = self.global_step.max(self.global_max);
+        self.episode_start = self.global_step;
         if self.config_changed {
             for lane in &mut self.lanes {
                 lane.env = AntEnv::new(lane.actor.config(&self.config), seed)?;
@@ -555,6 +614,7 @@ impl Session {
                 .push(self.lanes[..models].iter().map(Lane::snapshot).collect());
         }
         self.global_step += 1;
+        self.global_max = self.global_max.max(self.global_step);
         let episode = self.episodes_started.saturating_sub(1);
         let mut ended = Vec::new();
         for i in 0..self.lanes.len() {
