@@ -143,7 +143,14 @@ pub fn require_display(what: &'static str) -> Result<(), ViewerError> {
 pub fn spawn_viewer(viewer: &Path) -> Result<String, ViewerError> {
     let opts = rerun::SpawnOptions {
         executable_path: Some(viewer.display().to_string()),
-        extra_args: vec!["--window-size".into(), VIEWER_WINDOW_SIZE.into()],
+        // Loopback only: Rerun's default bind (0.0.0.0) would let anyone on the network
+        // connect and receive the session.
+        extra_args: vec![
+            "--window-size".into(),
+            VIEWER_WINDOW_SIZE.into(),
+            "--bind".into(),
+            "127.0.0.1".into(),
+        ],
         hide_welcome_screen: true,
         wait_for_bind: true,
         ..Default::default()
