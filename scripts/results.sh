@@ -5,6 +5,7 @@
 #   - eval: every run on the same 200 eval seeds per condition; per-seed and across-seed tables,
 #     paired tests, failure modes, figures (docs/results/eval.md and *.png);
 #   - probe: every encoder run, 50 episodes per condition, 5-fold CV (docs/results/probe/);
+#   - the ood scenario suite: every run, 200 episodes per scenario (docs/results/ood/);
 #   - training curves of every run.
 # Usage:
 #   scripts/results.sh                # all nine runs must be complete
@@ -62,5 +63,11 @@ $partial && base+=(--no-save)
   "$bin" probe --checkpoint "${encoders[@]}" "${base[@]}" --episodes "$probe_episodes" \
     --out "$out/probe"
 } >"$out/probe/probes.md"
+# The out-of-distribution suite (docs/scenarios.md), the same runs and episode count.
+mkdir -p "$out/ood"
+{
+  echo "$provenance"
+  "$bin" eval --checkpoint "${runs[@]}" --suite ood --episodes "$eval_episodes" --out "$out/ood"
+} >"$out/ood/eval.md"
 "$bin" curves --run "${runs[@]}" --out "$out/training_curves.png"
 echo "wrote $out"
