@@ -627,22 +627,10 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
                 seed,
                 start,
                 fork.as_ref(),
-                |r| {
-                    if args.jsonl {
-                        serde_json::to_writer(&mut out, r)?;
-                        writeln!(out)?;
-                    }
-                    Ok(())
-                },
+                |r| step_line(&mut out, args.jsonl, r),
             )
             .with_context(|| format!("episode {episode} (seed {seed})"))?;
-            if args.json {
-                serde_json::to_writer(&mut out, &summary)?;
-                writeln!(out)?;
-            } else if !args.jsonl {
-                writeln!(out, "{summary}")?;
-            }
-            out.flush()?;
+            summary_line(&mut out, &args, &summary)?;
         }
         return Ok(());
     }
@@ -651,21 +639,36 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
         let seed = args.seed.wrapping_add(episode as u64);
         let summary =
             rollout::run_builtin_episode_with(&mut env, args.policy, episode, seed, |r| {
-                if args.jsonl {
-                    serde_json::to_writer(&mut out, r)?;
-                    writeln!(out)?;
-                }
-                Ok(())
+                step_line(&mut out, args.jsonl, r)
             })
             .with_context(|| format!("episode {episode} (seed {seed})"))?;
-        if args.json {
-            serde_json::to_writer(&mut out, &summary)?;
-            writeln!(out)?;
-        } else if !args.jsonl {
-            writeln!(out, "{summary}")?;
-        }
-        out.flush()?;
+        summary_line(&mut out, &args, &summary)?;
     }
+    Ok(())
+}
+
+/// One step's JSON line (with --jsonl).
+fn step_line(out: &mut impl Write, jsonl: bool, r: &rollout::LaneRecord) -> std::io::Result<()> {
+    if jsonl {
+        serde_json::to_writer(&mut *out, r)?;
+        writeln!(out)?;
+    }
+    Ok(())
+}
+
+/// An episode's summary: a JSON object (--json), a text line, or nothing (--jsonl).
+fn summary_line(
+    out: &mut impl Write,
+    args: &RolloutArgs,
+    summary: &rollout::EpisodeSummary,
+) -> Result<()> {
+    if args.json {
+        serde_json::to_writer(&mut *out, summary)?;
+        writeln!(out)?;
+    } else if !args.jsonl {
+        writeln!(out, "{summary}")?;
+    }
+    out.flush()?;
     Ok(())
 }
 

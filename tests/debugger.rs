@@ -11,7 +11,6 @@ use re_chunk::Chunk;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::process::Command as Process;
 use std::time::Duration;
 
 mod common;
@@ -28,27 +27,23 @@ fn lstm() -> PathBuf {
 
 /// `rollout --jsonl` of the checkpoint (the headless path, not the live session).
 fn reference(seed: u64) -> Vec<Value> {
-    let out = Process::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args(["rollout", "--checkpoint"])
-        .arg(lstm())
-        .args(["--condition", "severe", "--episodes", "1", "--jsonl"])
-        .args([
-            "--seed",
-            &seed.to_string(),
-            "--max-steps",
-            &LIMIT.to_string(),
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
+    let (seed, limit) = (seed.to_string(), LIMIT.to_string());
+    let checkpoint = lstm();
+    let args: [&std::ffi::OsStr; 12] = [
+        "rollout".as_ref(),
+        "--checkpoint".as_ref(),
+        checkpoint.as_os_str(),
+        "--condition".as_ref(),
+        "severe".as_ref(),
+        "--episodes".as_ref(),
+        "1".as_ref(),
+        "--jsonl".as_ref(),
+        "--seed".as_ref(),
+        seed.as_ref(),
+        "--max-steps".as_ref(),
+        limit.as_ref(),
+    ];
+    common::gaitscope_json_lines(args).unwrap_or_else(|e| panic!("{e}"))
 }
 
 fn setup(seed: u64, breakpoints: Vec<Breakpoint>) -> LiveSetup {

@@ -4,6 +4,8 @@
 use serde_json::Value;
 use std::process::Command;
 
+mod common;
+
 const CHECKPOINTS: [&str; 3] = [
     concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/encoder-lstm"),
     concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/baseline"),
@@ -15,27 +17,17 @@ fn rollout(extra: &[&str]) -> Result<Vec<Value>, String> {
 }
 
 fn rollout_of(checkpoint: &str, extra: &[&str]) -> Result<Vec<Value>, String> {
-    let out = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args([
-            "rollout",
-            "--checkpoint",
-            checkpoint,
-            "--episodes",
-            "1",
-            "--seed",
-            "3",
-        ])
-        .args(["--condition", "severe", "--max-steps", "150", "--jsonl"])
-        .args(extra)
-        .output()
-        .unwrap();
-    if !out.status.success() {
-        return Err(String::from_utf8_lossy(&out.stderr).into_owned());
-    }
-    Ok(String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect())
+    let base = [
+        "rollout",
+        "--checkpoint",
+        checkpoint,
+        "--episodes",
+        "1",
+        "--seed",
+        "3",
+    ];
+    let tail = ["--condition", "severe", "--max-steps", "150", "--jsonl"];
+    common::gaitscope_json_lines(base.iter().chain(&tail).chain(extra))
 }
 
 fn lane<'a>(rows: &'a [Value], name: &str) -> Vec<&'a Value> {

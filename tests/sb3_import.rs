@@ -6,7 +6,8 @@ use gaitscope::policy::{ActionMode, Policy};
 use serde_json::Value;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::Command;
+
+mod common;
 
 const MODELS: [&str; 3] = ["sb3_baseline", "sb3_lstm", "sb3_lstm_shared"];
 const WINDOW: usize = 16 * (29 + 8);
@@ -96,20 +97,8 @@ fn agreeing_prefix(ours: &[Value], theirs: &[Value], key: &str, tol: f64) -> usi
 }
 
 fn rollout_jsonl(args: &[&std::ffi::OsStr]) -> Vec<Value> {
-    let out = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .arg("rollout")
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
+    let args = std::iter::once("rollout".as_ref()).chain(args.iter().copied());
+    common::gaitscope_json_lines(args).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// The policy-driven rollout from the fixed state follows Gymnasium's. SB3's float32 actions and

@@ -1,4 +1,6 @@
-//! Reading recordings back in tests: Rerun's chunks, and values per `step`.
+//! Test helpers: reading recordings back (Rerun chunks, values per `step`) and running the binary.
+// Shared by several test crates; each uses a part of it.
+#![allow(dead_code)]
 
 use re_chunk::Chunk;
 
@@ -36,7 +38,6 @@ pub fn per_step<T>(
 }
 
 /// (step, text) of every TextLog line on one entity.
-#[allow(dead_code)] // not every test crate reads text logs
 pub fn text_log(chunks: &[Chunk], entity: &str) -> Vec<(i64, String)> {
     let text = rerun::TextLog::descriptor_text().component;
     per_step(chunks, entity, |c| {
@@ -47,4 +48,23 @@ pub fn text_log(chunks: &[Chunk], entity: &str) -> Vec<(i64, String)> {
     .into_iter()
     .flat_map(|(t, lines)| lines.into_iter().map(move |l| (t, l)))
     .collect()
+}
+
+/// Runs the gaitscope binary with `args`: its stdout's JSON lines, or its stderr if it failed.
+pub fn gaitscope_json_lines<I, S>(args: I) -> Result<Vec<serde_json::Value>, String>
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<std::ffi::OsStr>,
+{
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(args)
+        .output()
+        .map_err(|e| format!("cannot run gaitscope: {e}"))?;
+    if !out.status.success() {
+        return Err(String::from_utf8_lossy(&out.stderr).into_owned());
+    }
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).map_err(|e| format!("not a JSON line ({e}): {l}")))
+        .collect()
 }
