@@ -241,33 +241,23 @@ fn overrides_saved_from_live_replay_step_for_step_in_rollout() {
     let live: Vec<(i64, Vec<f64>)> = common::per_step(&chunks, "/ant/actions/applied", |c| {
         c.iter_slices::<f64>(scalars).map(|s| s.to_vec()).collect()
     });
-    let out = Process::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args(["rollout", "--checkpoint"])
-        .arg(lstm())
-        .args([
-            "--condition",
-            "severe",
-            "--seed",
-            "4",
-            "--episodes",
-            "1",
-            "--max-steps",
-            "20",
-        ])
-        .arg("--scenario")
-        .arg(&file)
-        .arg("--jsonl")
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let rows: Vec<Value> = String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let checkpoint = lstm();
+    let mut args: Vec<&std::ffi::OsStr> = vec!["rollout".as_ref(), "--checkpoint".as_ref()];
+    args.push(checkpoint.as_os_str());
+    for a in [
+        "--condition",
+        "severe",
+        "--seed",
+        "4",
+        "--episodes",
+        "1",
+        "--max-steps",
+        "20",
+    ] {
+        args.push(a.as_ref());
+    }
+    args.extend(["--scenario".as_ref(), file.as_os_str(), "--jsonl".as_ref()]);
+    let rows = common::gaitscope_json_lines(args).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(rows.len(), 20);
     assert_eq!(live.len(), 20);
     for ((step, applied), row) in live.iter().zip(&rows) {
