@@ -17,6 +17,8 @@ pub mod rollout;
 pub mod scenario;
 pub mod telemetry;
 pub mod train;
+#[cfg(feature = "video")]
+pub mod video;
 pub mod window;
 
 pub use config::GaitConfig;

@@ -43,6 +43,8 @@ enum Command {
     Probe(ProbeArgs),
     /// Training curves (return, success, losses, α, triggers) from runs' metrics.jsonl, as a PNG.
     Curves(CurvesArgs),
+    /// Render an episode to MP4 with MuJoCo's renderer (cargo feature `video`; needs ffmpeg).
+    Video(VideoArgs),
     /// Convert a Stable-Baselines3 SAC archive (model.zip) into a gaitscope checkpoint.
     ImportSb3(ImportSb3Args),
     /// Measure performance.
@@ -275,6 +277,33 @@ struct CurvesArgs {
 }
 
 #[derive(Args)]
+struct VideoArgs {
+    /// Checkpoint whose deterministic policy acts (default: the random built-in policy).
+    #[arg(long, value_name = "DIR")]
+    checkpoint: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
+    policy: BuiltinPolicy,
+    #[arg(long, value_name = "healthy|mild|severe", default_value = "severe")]
+    condition: Condition,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// The MP4 to write (written to FILE.mp4.partial, renamed when complete).
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+    #[arg(long, default_value_t = 1280)]
+    width: usize,
+    #[arg(long, default_value_t = 720)]
+    height: usize,
+    /// Frames per second; 20 is real time (one frame per env step).
+    #[arg(long, default_value_t = 20)]
+    fps: u32,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
+#[derive(Args)]
 struct ImportSb3Args {
     /// The SB3 archive, as `model.save()` wrote it.
     model: PathBuf,
@@ -437,6 +466,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(args) => train_command(args),
         Command::Eval(args) => eval_command(args),
         Command::ImportSb3(args) => import_sb3_command(args),
+        Command::Video(args) => video_command(args),
         Command::Record(args) => record_command(args),
         Command::Live(args) => live_command(args),
         Command::Curves(args) => {
@@ -943,6 +973,89 @@ fn view_command(args: ViewArgs) -> Result<()> {
     viewer::require_display("gaitscope view")?;
     let path = viewer::find_viewer(args.viewer.as_deref())?;
     viewer::view_recording(&path, &args.file)?;
+    Ok(())
+}
+
+#[cfg(not(feature = "video"))]
+fn video_command(_: VideoArgs) -> Result<()> {
+    bail!(
+        "this gaitscope was built without the `video` feature (MuJoCo's offscreen renderer): \
+         cargo build --release --features video (needs libegl1, libgl1-mesa-dri and ffmpeg)"
+    )
+}
+
+#[cfg(feature = "video")]
+fn video_command(args: VideoArgs) -> Result<()> {
+    use gaitscope::video::{Encoder, FrameRenderer, FrameSpec};
+    let spec = FrameSpec {
+        width: args.width,
+        height: args.height,
+        fps: args.fps,
+    };
+    spec.check()?;
+    if args.out.extension().and_then(|e| e.to_str()) != Some("mp4") {
+        bail!("--out {} should end in .mp4", args.out.display());
+    }
+    if args.max_steps == 0 {
+        bail!("--max-steps must be at least 1");
+    }
+    let policy = args
+        .checkpoint
+        .as_deref()
+        .map(|dir| gaitscope::policy::Policy::load(dir, None))
+        .transpose()?;
+    let mut config = args.env.load()?;
+    if let Some(p) = &policy {
+        config = GaitConfig {
+            damage: gaitscope::config::DamageConfig {
+                scenario: config.damage.scenario.clone(),
+                ..p.meta.env.damage.clone()
+            },
+            ..p.meta.env.clone()
+        };
+    }
+    config.env.max_episode_steps = args.max_steps;
+    config.damage.condition = ConditionChoice::Fixed(args.condition);
+    let mut env = AntEnv::new(config, args.seed)?;
+    let mut obs = env.reset_with_seed(args.seed);
+    let mut renderer = FrameRenderer::new(&env, spec)?;
+    let mut encoder = Encoder::start(&args.out, spec)?;
+    let context_len = policy.as_ref().map_or(1, |p| p.net().context_len);
+    let mut window = gaitscope::ContextWindow::new(context_len);
+    let mut rng = rollout::policy_rng(args.seed);
+    let started = std::time::Instant::now();
+    let mut frames = 0usize;
+    loop {
+        let action = match &policy {
+            Some(p) => {
+                p.act_one(
+                    &obs,
+                    &window,
+                    gaitscope::policy::ActionMode::Deterministic,
+                    None,
+                )?
+                .action
+            }
+            None => args.policy.act(&mut rng).to_vec(),
+        };
+        let out = env.step(&action)?;
+        window.push(&obs, &action);
+        obs = out.obs;
+        encoder.push(&renderer.frame(&env)?)?;
+        frames += 1;
+        if out.done() {
+            break;
+        }
+    }
+    encoder.finish()?;
+    let secs = started.elapsed().as_secs_f64();
+    eprintln!(
+        "{frames} frames {}×{} in {secs:.1} s ({:.1} frames/s) → {}",
+        spec.width,
+        spec.height,
+        frames as f64 / secs,
+        args.out.display()
+    );
     Ok(())
 }
 

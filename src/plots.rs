@@ -19,7 +19,7 @@ pub enum PlotError {
 
 static FONT: Once = Once::new();
 
-fn register_font() {
+pub(crate) fn register_font() {
     FONT.call_once(|| {
         // The bytes are ours and valid; a failure here would only mean missing text.
         let _ = plotters::style::register_font(

@@ -1,0 +1,262 @@
+//! `gaitscope video`: an episode rendered with MuJoCo's own renderer (offscreen OpenGL on EGL,
+//! no display) and encoded to H.264 MP4 by Debian's `ffmpeg` through a pipe (a well-kept
+//! encoder with no build cost; the frames never touch the disk).
+//!
+//! The renderer draws a copy of the model, never the simulated one: each frame copies the
+//! state in, runs `mj_forward`, tints each leg by its actuator's torque scale (the viewer's
+//! palette) and renders from a camera that tracks the torso; a small text overlay says the
+//! step, the distance to the goal, the condition and the triggered joints.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use mujoco_rs::prelude::{MjData, MjModel, MjvCamera};
+use mujoco_rs::renderer::MjRenderer;
+
+use crate::damage::JointState;
+use crate::env::AntEnv;
+use crate::telemetry::damage_color;
+
+#[derive(Debug, thiserror::Error)]
+pub enum VideoError {
+    #[error("width and height must be even numbers ≥ 16 (H.264 with yuv420p), got {0}×{1}")]
+    BadSize(usize, usize),
+    #[error("--fps must be between 1 and 240, got {0}")]
+    BadFps(u32),
+    #[error(
+        "no OpenGL for offscreen rendering ({0}); on Debian: apt-get install libegl1 libgl1-mesa-dri"
+    )]
+    NoGl(String),
+    #[error("rendering failed: {0}")]
+    Render(String),
+    #[error("cannot start ffmpeg ({0}); on Debian: apt-get install ffmpeg")]
+    NoEncoder(std::io::Error),
+    #[error("ffmpeg failed: {0}")]
+    Encoder(String),
+    #[error("cannot write {path}: {reason}")]
+    Write { path: PathBuf, reason: String },
+}
+
+/// Frame size and rate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameSpec {
+    pub width: usize,
+    pub height: usize,
+    pub fps: u32,
+}
+
+impl FrameSpec {
+    pub fn check(&self) -> Result<(), VideoError> {
+        if self.width < 16 || self.height < 16 || self.width % 2 == 1 || self.height % 2 == 1 {
+            return Err(VideoError::BadSize(self.width, self.height));
+        }
+        if !(1..=240).contains(&self.fps) {
+            return Err(VideoError::BadFps(self.fps));
+        }
+        Ok(())
+    }
+}
+
+/// Renders an env's current state to RGB frames.
+pub struct FrameRenderer {
+    data: MjData<Box<MjModel>>,
+    renderer: MjRenderer,
+    /// (geom, actuator) of every leg capsule, and each geom's own colour.
+    leg_geoms: Vec<(usize, usize)>,
+    spec: FrameSpec,
+}
+
+impl FrameRenderer {
+    pub fn new(env: &AntEnv, spec: FrameSpec) -> Result<Self, VideoError> {
+        spec.check()?;
+        let mut model: MjModel = env.physics().model().clone();
+        // The offscreen buffer is the model's (640 × 480 in the Ant's XML): make it the frame's.
+        model.vis_mut().global.offwidth = spec.width as i32;
+        model.vis_mut().global.offheight = spec.height as i32;
+        let leg_geoms = (0..model.ngeom() as usize)
+            .filter_map(|g| {
+                let body = model.geom_bodyid()[g] as usize;
+                env.actuators()
+                    .iter()
+                    .position(|a| a.body_id == body)
+                    .map(|a| (g, a))
+            })
+            .collect();
+        let mut camera = MjvCamera::new_tracking(env.torso_body());
+        camera.distance = 5.0;
+        camera.azimuth = 135.0;
+        camera.elevation = -30.0;
+        let renderer = MjRenderer::builder()
+            .width(spec.width as u32)
+            .height(spec.height as u32)
+            .camera(camera)
+            .build(&model)
+            .map_err(|e| VideoError::NoGl(e.to_string()))?;
+        Ok(Self {
+            data: MjData::new(Box::new(model)),
+            renderer,
+            leg_geoms,
+            spec,
+        })
+    }
+
+    /// The frame of `env`'s current state, RGB, row-major, top row first.
+    pub fn frame(&mut self, env: &AntEnv) -> Result<Vec<u8>, VideoError> {
+        self.data.qpos_mut().copy_from_slice(env.qpos());
+        self.data.qvel_mut().copy_from_slice(env.qvel());
+        let damage = env.damage();
+        // SAFETY: only colours change; no array is resized and no index is touched.
+        let rgba = unsafe { self.data.model_mut() }.geom_rgba_mut();
+        for &(g, a) in &self.leg_geoms {
+            let c = damage_color(
+                damage.joint_state(a),
+                damage.fatigue()[a],
+                damage.config().threshold,
+            );
+            rgba[g] = [c[0], c[1], c[2], c[3]].map(|v| f32::from(v) / 255.0);
+        }
+        self.data.forward();
+        self.renderer
+            .sync_data(&mut self.data)
+            .map_err(|e| VideoError::Render(e.to_string()))?;
+        self.renderer
+            .render()
+            .map_err(|e| VideoError::Render(e.to_string()))?;
+        let mut rgb = self
+            .renderer
+            .rgb_flat()
+            .ok_or_else(|| VideoError::Render("no RGB buffer".into()))?
+            .to_vec();
+        overlay(&mut rgb, self.spec, &caption(env)).map_err(VideoError::Render)?;
+        Ok(rgb)
+    }
+}
+
+/// The overlay's text: step, distance, condition, triggered joints.
+fn caption(env: &AntEnv) -> String {
+    let damage = env.damage();
+    let broken: Vec<&str> = (0..crate::damage::N_ACTUATORS)
+        .filter(|&i| damage.joint_state(i) != JointState::Healthy)
+        .map(|i| damage.joint_names()[i].as_str())
+        .collect();
+    format!(
+        "step {}  ·  {:.2} m to goal  ·  {}  ·  damaged: {}",
+        env.steps(),
+        env.goal_distance(),
+        env.condition(),
+        if broken.is_empty() {
+            "none".to_string()
+        } else {
+            broken.join(", ")
+        }
+    )
+}
+
+fn overlay(rgb: &mut [u8], spec: FrameSpec, text: &str) -> Result<(), String> {
+    use plotters::prelude::*;
+    crate::plots::register_font();
+    let root = BitMapBackend::with_buffer(rgb, (spec.width as u32, spec.height as u32))
+        .into_drawing_area();
+    let size = (spec.height as f64 / 28.0).max(10.0);
+    let style = ("sans-serif", size).into_font().color(&WHITE);
+    root.draw(&Rectangle::new(
+        [(0, 0), (spec.width as i32, (size * 1.6) as i32)],
+        RGBAColor(0, 0, 0, 0.55).filled(),
+    ))
+    .map_err(|e| e.to_string())?;
+    root.draw(&Text::new(
+        text.to_string(),
+        (6, (size * 0.25) as i32),
+        style,
+    ))
+    .map_err(|e| e.to_string())?;
+    root.present().map_err(|e| e.to_string())
+}
+
+/// An ffmpeg process taking raw RGB frames on stdin, writing `tmp`.
+pub struct Encoder {
+    child: Option<Child>,
+    tmp: PathBuf,
+    out: PathBuf,
+}
+
+impl Encoder {
+    /// Starts ffmpeg on a temporary sibling of `out` (renamed at [`Self::finish`]).
+    pub fn start(out: &Path, spec: FrameSpec) -> Result<Self, VideoError> {
+        let tmp = out.with_extension("mp4.partial");
+        let child = Command::new("ffmpeg")
+            .args([
+                "-loglevel",
+                "error",
+                "-y",
+                "-f",
+                "rawvideo",
+                "-pix_fmt",
+                "rgb24",
+            ])
+            .args(["-s", &format!("{}x{}", spec.width, spec.height)])
+            .args(["-r", &spec.fps.to_string(), "-i", "-"])
+            .args([
+                "-c:v",
+                "libx264",
+                "-pix_fmt",
+                "yuv420p",
+                "-movflags",
+                "+faststart",
+            ])
+            .args(["-f", "mp4"])
+            .arg(&tmp)
+            .stdin(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(VideoError::NoEncoder)?;
+        Ok(Self {
+            child: Some(child),
+            tmp,
+            out: out.to_owned(),
+        })
+    }
+
+    pub fn push(&mut self, frame: &[u8]) -> Result<(), VideoError> {
+        let stdin = self
+            .child
+            .as_mut()
+            .and_then(|c| c.stdin.as_mut())
+            .ok_or_else(|| VideoError::Encoder("stdin closed".into()))?;
+        stdin
+            .write_all(frame)
+            .map_err(|e| VideoError::Encoder(format!("writing a frame: {e}")))
+    }
+
+    /// Closes the stream, waits for ffmpeg and moves the file into place.
+    pub fn finish(mut self) -> Result<(), VideoError> {
+        let Some(mut child) = self.child.take() else {
+            return Err(VideoError::Encoder("already finished".into()));
+        };
+        drop(child.stdin.take()); // end of stream
+        let output = child
+            .wait_with_output()
+            .map_err(|e| VideoError::Encoder(e.to_string()))?;
+        if !output.status.success() {
+            return Err(VideoError::Encoder(
+                String::from_utf8_lossy(&output.stderr).trim().to_string(),
+            ));
+        }
+        std::fs::rename(&self.tmp, &self.out).map_err(|e| VideoError::Write {
+            path: self.out.clone(),
+            reason: e.to_string(),
+        })
+    }
+}
+
+impl Drop for Encoder {
+    /// An unfinished video leaves nothing behind: ffmpeg is stopped and its file removed.
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+        let _ = std::fs::remove_file(&self.tmp);
+    }
+}

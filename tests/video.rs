@@ -1,0 +1,93 @@
+//! `gaitscope video` (cargo feature `video`; needs EGL and ffmpeg): frames at the asked size and
+//! rate, not blank, and the damage tint where the damage is.
+#![cfg(feature = "video")]
+
+use gaitscope::damage::DamageEdit;
+use gaitscope::video::{FrameRenderer, FrameSpec};
+use gaitscope::{AntEnv, GaitConfig};
+use std::process::Command;
+
+const SPEC: FrameSpec = FrameSpec {
+    width: 320,
+    height: 240,
+    fps: 20,
+};
+
+/// Pixels of the damaged-joint red (the viewer's palette: 220, 40, 40, shaded by the light).
+fn red_pixels(rgb: &[u8]) -> usize {
+    rgb.chunks_exact(3)
+        .filter(|p| p[0] > 120 && p[1] < 70 && p[2] < 70)
+        .count()
+}
+
+fn variance(rgb: &[u8]) -> f64 {
+    let n = rgb.len() as f64;
+    let mean = rgb.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+    rgb.iter()
+        .map(|&v| (f64::from(v) - mean).powi(2))
+        .sum::<f64>()
+        / n
+}
+
+#[test]
+fn frames_show_the_ant_and_its_damage() {
+    let mut env = AntEnv::new(GaitConfig::default(), 0).unwrap();
+    env.reset_with_seed(0);
+    env.set_fatigue_triggers(false);
+    let mut renderer = FrameRenderer::new(&env, SPEC).unwrap();
+    env.step(&[0.0; 8]).unwrap();
+    let healthy = renderer.frame(&env).unwrap();
+    assert_eq!(healthy.len(), 320 * 240 * 3);
+    assert!(variance(&healthy) > 100.0, "not a blank frame");
+    for edit in DamageEdit::parse_list("fail:all=0.1").unwrap() {
+        env.apply_edit(&edit).unwrap();
+    }
+    env.step(&[0.0; 8]).unwrap();
+    let damaged = renderer.frame(&env).unwrap();
+    let (before, after) = (red_pixels(&healthy), red_pixels(&damaged));
+    assert!(
+        before < 20 && after > 200,
+        "red leg pixels: healthy {before}, failed {after}"
+    );
+}
+
+#[test]
+fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ant.mp4");
+    let run = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["video", "--policy", "zero", "--max-steps", "30"])
+        .args(["--width", "320", "--height", "240", "--fps", "20", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let probe = Command::new("ffprobe")
+        .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
+        .args([
+            "-show_entries",
+            "stream=width,height,nb_read_frames,r_frame_rate",
+            "-of",
+            "csv=p=0",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_eq!(
+        String::from_utf8_lossy(&probe.stdout).trim(),
+        "320,240,20/1,30"
+    );
+    assert!(!dir.path().join("ant.mp4.partial").exists());
+    // Bad sizes are refused before anything is written.
+    let bad = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["video", "--width", "321", "--out"])
+        .arg(dir.path().join("odd.mp4"))
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("must be even numbers"));
+    assert!(!dir.path().join("odd.mp4").exists());
+}
