@@ -11,7 +11,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 
-use mujoco_rs::prelude::{MjData, MjModel, MjvCamera};
+use mujoco_rs::prelude::{MjData, MjModel, MjtGeom, MjvCamera};
 use mujoco_rs::renderer::MjRenderer;
 
 use crate::damage::JointState;
@@ -91,8 +91,32 @@ impl FrameRenderer {
             .width(spec.width as u32)
             .height(spec.height as u32)
             .camera(camera)
+            .num_visual_user_geom(2)
             .build(&model)
             .map_err(|e| VideoError::NoGl(e.to_string()))?;
+        let mut renderer = renderer;
+        // The goal: its success disc and a marker (the user scene is drawn into every frame).
+        let task = &env.config().env;
+        let [gx, gy] = task.goal;
+        let r = task.success_radius;
+        let scene = renderer.user_scene_mut();
+        // SAFETY: plain geoms with no material, texture or flex/skin index (all left at -1).
+        unsafe {
+            scene.create_geom(
+                MjtGeom::mjGEOM_ELLIPSOID,
+                Some([r, r, 0.01]),
+                Some([gx, gy, 0.005]),
+                None,
+                Some([1.0, 0.8, 0.1, 0.45]),
+            );
+            scene.create_geom(
+                MjtGeom::mjGEOM_SPHERE,
+                Some([0.08, 0.08, 0.08]),
+                Some([gx, gy, 0.08]),
+                None,
+                Some([1.0, 0.7, 0.0, 1.0]),
+            );
+        }
         Ok(Self {
             data: MjData::new(Box::new(model)),
             renderer,
