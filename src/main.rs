@@ -281,6 +281,16 @@ struct VideoArgs {
     /// Checkpoint whose deterministic policy acts (default: the random built-in policy).
     #[arg(long, value_name = "DIR")]
     checkpoint: Option<PathBuf>,
+    /// A second checkpoint beside the first, same seed and damage, each half the frame.
+    #[arg(long, value_name = "DIR", conflicts_with = "fork_at")]
+    compare: Option<PathBuf>,
+    /// Fork the episode before step K: a second lane from the identical state with --fork's
+    /// edits, beside the first.
+    #[arg(long, value_name = "K", requires = "fork")]
+    fork_at: Option<usize>,
+    /// The fork's damage edits, as for `rollout --fork`.
+    #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
+    fork: Option<String>,
     #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
     policy: BuiltinPolicy,
     #[arg(long, value_name = "healthy|mild|severe", default_value = "severe")]
@@ -986,7 +996,7 @@ fn video_command(_: VideoArgs) -> Result<()> {
 
 #[cfg(feature = "video")]
 fn video_command(args: VideoArgs) -> Result<()> {
-    use gaitscope::video::{Encoder, FrameRenderer, FrameSpec};
+    use gaitscope::video::{Encoder, FrameSpec, VideoLane, render_episode};
     let spec = FrameSpec {
         width: args.width,
         height: args.height,
@@ -1016,37 +1026,64 @@ fn video_command(args: VideoArgs) -> Result<()> {
     }
     config.env.max_episode_steps = args.max_steps;
     config.damage.condition = ConditionChoice::Fixed(args.condition);
-    let mut env = AntEnv::new(config, args.seed)?;
-    let mut obs = env.reset_with_seed(args.seed);
-    let mut renderer = FrameRenderer::new(&env, spec)?;
-    let mut encoder = Encoder::start(&args.out, spec)?;
-    let context_len = policy.as_ref().map_or(1, |p| p.net().context_len);
-    let mut window = gaitscope::ContextWindow::new(context_len);
-    let mut rng = rollout::policy_rng(args.seed);
-    let started = std::time::Instant::now();
-    let mut frames = 0usize;
-    loop {
-        let action = match &policy {
-            Some(p) => {
-                p.act_one(
-                    &obs,
-                    &window,
-                    gaitscope::policy::ActionMode::Deterministic,
-                    None,
-                )?
-                .action
-            }
-            None => args.policy.act(&mut rng).to_vec(),
-        };
-        let out = env.step(&action)?;
-        window.push(&obs, &action);
-        obs = out.obs;
-        encoder.push(&renderer.frame(&env)?)?;
-        frames += 1;
-        if out.done() {
-            break;
+    let compare = args
+        .compare
+        .as_deref()
+        .map(|dir| gaitscope::policy::Policy::load(dir, None))
+        .transpose()?;
+    let fork = match (args.fork_at, &args.fork) {
+        (Some(at), Some(edits)) => Some(rollout::Fork {
+            at,
+            edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
+        }),
+        _ => None,
+    };
+    // Side by side: two lanes, each half the width (kept even for the encoder).
+    let two = compare.is_some() || fork.is_some();
+    let lane_spec = if two {
+        if !args.width.is_multiple_of(4) {
+            bail!(
+                "--width {} must be a multiple of 4 for two lanes side by side",
+                args.width
+            );
         }
+        FrameSpec {
+            width: args.width / 2,
+            ..spec
+        }
+    } else {
+        spec
+    };
+    let label_of = |dir: &Option<PathBuf>| match dir {
+        Some(dir) => gaitscope::eval::model_label(dir),
+        None => format!("{:?} policy", args.policy).to_lowercase(),
+    };
+    let first_label = if two {
+        label_of(&args.checkpoint)
+    } else {
+        String::new()
+    };
+    let mut lanes = vec![VideoLane::new(
+        first_label,
+        config.clone(),
+        policy,
+        args.policy,
+        args.seed,
+        lane_spec,
+    )?];
+    if let Some(p) = compare {
+        lanes.push(VideoLane::new(
+            label_of(&args.compare),
+            config,
+            Some(p),
+            args.policy,
+            args.seed,
+            lane_spec,
+        )?);
     }
+    let mut encoder = Encoder::start(&args.out, spec)?;
+    let started = std::time::Instant::now();
+    let frames = render_episode(lanes, fork.as_ref(), spec, lane_spec, &mut encoder)?;
     encoder.finish()?;
     let secs = started.elapsed().as_secs_f64();
     eprintln!(

@@ -127,6 +127,11 @@ impl FrameRenderer {
 
     /// The frame of `env`'s current state, RGB, row-major, top row first.
     pub fn frame(&mut self, env: &AntEnv) -> Result<Vec<u8>, VideoError> {
+        self.frame_with(env, "")
+    }
+
+    /// [`Self::frame`] with a label above the caption (side-by-side lanes).
+    pub fn frame_with(&mut self, env: &AntEnv, label: &str) -> Result<Vec<u8>, VideoError> {
         self.data.qpos_mut().copy_from_slice(env.qpos());
         self.data.qvel_mut().copy_from_slice(env.qvel());
         let damage = env.damage();
@@ -152,7 +157,7 @@ impl FrameRenderer {
             .rgb_flat()
             .ok_or_else(|| VideoError::Render("no RGB buffer".into()))?
             .to_vec();
-        overlay(&mut rgb, self.spec, &caption(env)).map_err(VideoError::Render)?;
+        overlay(&mut rgb, self.spec, label, &caption(env)).map_err(VideoError::Render)?;
         Ok(rgb)
     }
 }
@@ -177,24 +182,28 @@ fn caption(env: &AntEnv) -> String {
     )
 }
 
-fn overlay(rgb: &mut [u8], spec: FrameSpec, text: &str) -> Result<(), String> {
+fn overlay(rgb: &mut [u8], spec: FrameSpec, label: &str, text: &str) -> Result<(), String> {
     use plotters::prelude::*;
     crate::plots::register_font();
     let root = BitMapBackend::with_buffer(rgb, (spec.width as u32, spec.height as u32))
         .into_drawing_area();
     let size = (spec.height as f64 / 28.0).max(10.0);
     let style = ("sans-serif", size).into_font().color(&WHITE);
+    let lines: Vec<&str> = [label, text]
+        .into_iter()
+        .filter(|l| !l.is_empty())
+        .collect();
+    let strip = size * (0.3 + 1.3 * lines.len() as f64);
     root.draw(&Rectangle::new(
-        [(0, 0), (spec.width as i32, (size * 1.6) as i32)],
+        [(0, 0), (spec.width as i32, strip as i32)],
         RGBAColor(0, 0, 0, 0.55).filled(),
     ))
     .map_err(|e| e.to_string())?;
-    root.draw(&Text::new(
-        text.to_string(),
-        (6, (size * 0.25) as i32),
-        style,
-    ))
-    .map_err(|e| e.to_string())?;
+    for (k, line) in lines.iter().enumerate() {
+        let y = (size * (0.25 + 1.3 * k as f64)) as i32;
+        root.draw(&Text::new(line.to_string(), (6, y), style.clone()))
+            .map_err(|e| e.to_string())?;
+    }
     root.present().map_err(|e| e.to_string())
 }
 
@@ -283,4 +292,173 @@ impl Drop for Encoder {
         }
         let _ = std::fs::remove_file(&self.tmp);
     }
+}
+
+/// One model's episode in a video: its env, policy and renderer.
+pub struct VideoLane {
+    pub label: String,
+    env: AntEnv,
+    policy: Option<crate::policy::Policy>,
+    builtin: crate::rollout::BuiltinPolicy,
+    window: crate::window::ContextWindow,
+    obs: crate::env::Observation,
+    rng: rand_chacha::ChaCha8Rng,
+    renderer: FrameRenderer,
+    /// The last frame (shown frozen once this lane's episode ended).
+    frame: Vec<u8>,
+    done: bool,
+}
+
+impl VideoLane {
+    /// A lane reset with `seed`, rendered at `spec`.
+    pub fn new(
+        label: String,
+        config: crate::config::GaitConfig,
+        policy: Option<crate::policy::Policy>,
+        builtin: crate::rollout::BuiltinPolicy,
+        seed: u64,
+        spec: FrameSpec,
+    ) -> Result<Self, VideoError> {
+        let env_err = |e: crate::env::EnvError| VideoError::Render(e.to_string());
+        let mut env = AntEnv::new(config, seed).map_err(env_err)?;
+        let obs = env.reset_with_seed(seed);
+        let renderer = FrameRenderer::new(&env, spec)?;
+        let context_len = policy.as_ref().map_or(1, |p| p.net().context_len);
+        Ok(Self {
+            label,
+            env,
+            policy,
+            builtin,
+            window: crate::window::ContextWindow::new(context_len),
+            obs,
+            rng: crate::rollout::policy_rng(seed),
+            renderer,
+            frame: Vec::new(),
+            done: false,
+        })
+    }
+
+    /// A second lane from this one's exact state with `edits` applied (a counterfactual fork).
+    pub fn fork(
+        &self,
+        edits: &[crate::damage::DamageEdit],
+        spec: FrameSpec,
+    ) -> Result<Self, VideoError> {
+        let env_err = |e: crate::env::EnvError| VideoError::Render(e.to_string());
+        let mut env = AntEnv::new(self.env.config().clone(), 0).map_err(env_err)?;
+        env.restore(&self.env.snapshot()).map_err(env_err)?;
+        for edit in edits {
+            env.apply_edit(edit).map_err(env_err)?;
+        }
+        let renderer = FrameRenderer::new(&env, spec)?;
+        let edits: Vec<String> = edits.iter().map(ToString::to_string).collect();
+        Ok(Self {
+            label: format!("fork at step {}: {}", env.steps(), edits.join(",")),
+            env,
+            policy: self.policy.clone(),
+            builtin: self.builtin,
+            window: self.window.clone(),
+            obs: self.obs,
+            rng: self.rng.clone(),
+            renderer,
+            frame: self.frame.clone(),
+            done: self.done,
+        })
+    }
+
+    pub fn steps(&self) -> usize {
+        self.env.steps()
+    }
+
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+
+    /// One env step (deterministic policy, or the built-in one) and its frame.
+    fn step(&mut self) -> Result<(), VideoError> {
+        if self.done {
+            return Ok(());
+        }
+        let action = match &self.policy {
+            Some(p) => {
+                p.act_one(
+                    &self.obs,
+                    &self.window,
+                    crate::policy::ActionMode::Deterministic,
+                    None,
+                )
+                .map_err(|e| VideoError::Render(format!("policy: {e}")))?
+                .action
+            }
+            None => self.builtin.act(&mut self.rng).to_vec(),
+        };
+        let out = self
+            .env
+            .step(&action)
+            .map_err(|e| VideoError::Render(e.to_string()))?;
+        self.window.push(&self.obs, &action);
+        self.obs = out.obs;
+        self.done = out.done();
+        self.frame = self.renderer.frame_with(&self.env, &self.label)?;
+        Ok(())
+    }
+}
+
+/// Runs the lanes in lockstep to the end of every episode, one frame per step: lanes side by
+/// side, each `lane_width` wide (a finished lane holds its last frame). `fork` adds a lane from
+/// the first one before step K. Returns the frame count.
+pub fn render_episode(
+    mut lanes: Vec<VideoLane>,
+    fork: Option<&crate::rollout::Fork>,
+    spec: FrameSpec,
+    lane_spec: FrameSpec,
+    encoder: &mut Encoder,
+) -> Result<usize, VideoError> {
+    let mut frames = 0;
+    let mut forked = false;
+    while lanes.iter().any(|l| !l.done) {
+        if let Some(f) = fork
+            && !forked
+            && lanes[0].steps() == f.at
+            && !lanes[0].done
+        {
+            let lane = lanes[0].fork(&f.edits, lane_spec)?;
+            lanes.push(lane);
+            forked = true;
+        }
+        for lane in &mut lanes {
+            lane.step()?;
+        }
+        encoder.push(&stitch(&lanes, spec, lane_spec))?;
+        frames += 1;
+    }
+    if let Some(f) = fork
+        && !forked
+    {
+        return Err(VideoError::Render(format!(
+            "--fork-at {} is beyond the episode, which ended after {} steps",
+            f.at,
+            lanes[0].steps()
+        )));
+    }
+    Ok(frames)
+}
+
+/// The lanes' frames side by side in one `spec`-sized frame (black where a lane has none yet).
+fn stitch(lanes: &[VideoLane], spec: FrameSpec, lane_spec: FrameSpec) -> Vec<u8> {
+    if lanes.len() == 1 && lane_spec == spec {
+        return lanes[0].frame.clone();
+    }
+    let mut out = vec![0u8; spec.width * spec.height * 3];
+    for (k, lane) in lanes.iter().enumerate() {
+        if lane.frame.len() != lane_spec.width * lane_spec.height * 3 {
+            continue;
+        }
+        for row in 0..lane_spec.height {
+            let src = &lane.frame[row * lane_spec.width * 3..(row + 1) * lane_spec.width * 3];
+            let at = (row * spec.width + k * lane_spec.width) * 3;
+            out[at..at + src.len()].copy_from_slice(src);
+        }
+    }
+    out
 }

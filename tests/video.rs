@@ -82,6 +82,47 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
         "320,240,20/1,30"
     );
     assert!(!dir.path().join("ant.mp4.partial").exists());
+    // A fork before step 10 beside the main lane: one frame per step, both halves in it.
+    let forked = dir.path().join("fork.mp4");
+    let run = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args([
+            "video",
+            "--policy",
+            "zero",
+            "--max-steps",
+            "20",
+            "--fork-at",
+            "10",
+        ])
+        .args([
+            "--fork",
+            "fail:all=0.1",
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--out",
+        ])
+        .arg(&forked)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let probe = Command::new("ffprobe")
+        .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
+        .args([
+            "-show_entries",
+            "stream=width,height,nb_read_frames",
+            "-of",
+            "csv=p=0",
+        ])
+        .arg(&forked)
+        .output()
+        .unwrap();
+    assert_eq!(String::from_utf8_lossy(&probe.stdout).trim(), "320,240,20");
     // Bad sizes are refused before anything is written.
     let bad = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
         .args(["video", "--width", "321", "--out"])
@@ -90,4 +131,19 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
         .unwrap();
     assert!(String::from_utf8_lossy(&bad.stderr).contains("must be even numbers"));
     assert!(!dir.path().join("odd.mp4").exists());
+    let bad = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args([
+            "video",
+            "--width",
+            "322",
+            "--fork-at",
+            "3",
+            "--fork",
+            "heal:all",
+            "--out",
+        ])
+        .arg(dir.path().join("half.mp4"))
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("multiple of 4"));
 }
