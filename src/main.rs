@@ -309,6 +309,9 @@ struct VideoArgs {
     /// Frames per second; 20 is real time (one frame per env step).
     #[arg(long, default_value_t = 20)]
     fps: u32,
+    /// track: follow the torso; fixed: a still view of start and goal (needs --features video).
+    #[arg(long, default_value = "track", value_name = "track|fixed")]
+    camera: String,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -1001,6 +1004,11 @@ fn video_command(args: VideoArgs) -> Result<()> {
         width: args.width,
         height: args.height,
         fps: args.fps,
+        camera: match args.camera.as_str() {
+            "track" => gaitscope::video::CameraMode::Track,
+            "fixed" => gaitscope::video::CameraMode::Fixed,
+            other => bail!("--camera {other}: expected track or fixed"),
+        },
     };
     spec.check()?;
     if args.out.extension().and_then(|e| e.to_str()) != Some("mp4") {

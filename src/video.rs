@@ -38,12 +38,22 @@ pub enum VideoError {
     Write { path: PathBuf, reason: String },
 }
 
-/// Frame size and rate.
+/// How the camera moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CameraMode {
+    /// Follows the torso at 5 m, as the viewer's 3-D view does.
+    Track,
+    /// Still, framing the start and the goal.
+    Fixed,
+}
+
+/// Frame size, rate and camera.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameSpec {
     pub width: usize,
     pub height: usize,
     pub fps: u32,
+    pub camera: CameraMode,
 }
 
 impl FrameSpec {
@@ -83,10 +93,25 @@ impl FrameRenderer {
                     .map(|a| (g, a))
             })
             .collect();
-        let mut camera = MjvCamera::new_tracking(env.torso_body());
-        camera.distance = 5.0;
-        camera.azimuth = 135.0;
-        camera.elevation = -30.0;
+        let [gx, gy] = env.config().env.goal;
+        let camera = match spec.camera {
+            CameraMode::Track => {
+                let mut c = MjvCamera::new_tracking(env.torso_body());
+                c.distance = 5.0;
+                c.azimuth = 135.0;
+                c.elevation = -30.0;
+                c
+            }
+            CameraMode::Fixed => {
+                // Above the side of the start–goal line, looking at its middle.
+                let mut c = MjvCamera::new_free(&model);
+                c.lookat = [gx / 2.0, gy / 2.0, 0.0];
+                c.distance = 2.0 * gx.hypot(gy).max(2.0);
+                c.azimuth = 225.0;
+                c.elevation = -40.0;
+                c
+            }
+        };
         let renderer = MjRenderer::builder()
             .width(spec.width as u32)
             .height(spec.height as u32)
@@ -96,9 +121,7 @@ impl FrameRenderer {
             .map_err(|e| VideoError::NoGl(e.to_string()))?;
         let mut renderer = renderer;
         // The goal: its success disc and a marker (the user scene is drawn into every frame).
-        let task = &env.config().env;
-        let [gx, gy] = task.goal;
-        let r = task.success_radius;
+        let r = env.config().env.success_radius;
         let scene = renderer.user_scene_mut();
         // SAFETY: plain geoms with no material, texture or flex/skin index (all left at -1).
         unsafe {

@@ -11,6 +11,7 @@ const SPEC: FrameSpec = FrameSpec {
     width: 320,
     height: 240,
     fps: 20,
+    camera: gaitscope::video::CameraMode::Track,
 };
 
 /// Pixels of the damaged-joint red (the viewer's palette: 220, 40, 40, shaded by the light).
