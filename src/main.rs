@@ -637,13 +637,7 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
     }
     if let Some(dir) = &args.checkpoint {
         let policy = gaitscope::policy::Policy::load(dir, None)?;
-        let fork = match (args.fork_at, &args.fork) {
-            (Some(at), Some(edits)) => Some(rollout::Fork {
-                at,
-                edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
-            }),
-            _ => None,
-        };
+        let fork = fork_option(args.fork_at, args.fork.as_deref())?;
         let init = match &args.init_state {
             Some(path) => {
                 let Some(condition) = args.condition else {
@@ -814,13 +808,7 @@ fn record_command(args: RecordArgs) -> Result<()> {
         episodes: args.episodes,
         seed: args.seed,
         sink: Sink::File(args.out.clone()),
-        fork: match (args.fork_at, &args.fork) {
-            (Some(at), Some(edits)) => Some(rollout::Fork {
-                at,
-                edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
-            }),
-            _ => None,
-        },
+        fork: fork_option(args.fork_at, args.fork.as_deref())?,
     };
     let summary = telemetry::record(opts, &stop)?;
     let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
@@ -875,13 +863,7 @@ fn live_command(args: LiveArgs) -> Result<()> {
         breakpoints: gaitscope::app::Breakpoint::parse_list(
             args.break_on.as_deref().unwrap_or_default(),
         )?,
-        fork: match (args.fork_at, &args.fork) {
-            (Some(at), Some(edits)) => Some(rollout::Fork {
-                at,
-                edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
-            }),
-            _ => None,
-        },
+        fork: fork_option(args.fork_at, args.fork.as_deref())?,
         config,
     };
     // Check what can be checked before any window opens: the input first, then the display.
@@ -1039,13 +1021,7 @@ fn video_command(args: VideoArgs) -> Result<()> {
         .as_deref()
         .map(|dir| gaitscope::policy::Policy::load(dir, None))
         .transpose()?;
-    let fork = match (args.fork_at, &args.fork) {
-        (Some(at), Some(edits)) => Some(rollout::Fork {
-            at,
-            edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
-        }),
-        _ => None,
-    };
+    let fork = fork_option(args.fork_at, args.fork.as_deref())?;
     // Side by side: two lanes, each half the width (kept even for the encoder).
     let two = compare.is_some() || fork.is_some();
     let lane_spec = if two {
@@ -1102,6 +1078,17 @@ fn video_command(args: VideoArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+/// `--fork-at K --fork EDITS` (clap makes each require the other), parsed.
+fn fork_option(at: Option<usize>, edits: Option<&str>) -> Result<Option<rollout::Fork>> {
+    Ok(match (at, edits) {
+        (Some(at), Some(edits)) => Some(rollout::Fork {
+            at,
+            edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
+        }),
+        _ => None,
+    })
 }
 
 /// `--suite`'s long help: each built-in scenario with its one-line description.

@@ -52,14 +52,13 @@ fn frames_show_the_ant_and_its_damage() {
     );
 }
 
-#[test]
-fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("ant.mp4");
+/// Runs `gaitscope video ARGS --out OUT`; panics with its stderr if it fails.
+fn video(args: &[&str], out: &std::path::Path) {
     let run = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args(["video", "--policy", "zero", "--max-steps", "30"])
-        .args(["--width", "320", "--height", "240", "--fps", "20", "--out"])
-        .arg(&out)
+        .arg("video")
+        .args(args)
+        .arg("--out")
+        .arg(out)
         .output()
         .unwrap();
     assert!(
@@ -67,63 +66,56 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
         "{}",
         String::from_utf8_lossy(&run.stderr)
     );
+}
+
+/// ffprobe's `entries` of the first video stream, counted frames included, as CSV.
+fn probe(path: &std::path::Path, entries: &str) -> String {
     let probe = Command::new("ffprobe")
         .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
         .args([
             "-show_entries",
-            "stream=width,height,nb_read_frames,r_frame_rate",
+            &format!("stream={entries}"),
             "-of",
             "csv=p=0",
         ])
-        .arg(&out)
+        .arg(path)
         .output()
         .unwrap();
+    String::from_utf8_lossy(&probe.stdout).trim().to_string()
+}
+
+#[test]
+fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ant.mp4");
+    let size = ["--width", "320", "--height", "240"];
+    video(
+        &[
+            &["--policy", "zero", "--max-steps", "30", "--fps", "20"][..],
+            &size,
+        ]
+        .concat(),
+        &out,
+    );
     assert_eq!(
-        String::from_utf8_lossy(&probe.stdout).trim(),
+        probe(&out, "width,height,nb_read_frames,r_frame_rate"),
         "320,240,20/1,30"
     );
     assert!(!dir.path().join("ant.mp4.partial").exists());
     // A fork before step 10 beside the main lane: one frame per step, both halves in it.
     let forked = dir.path().join("fork.mp4");
-    let run = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args([
-            "video",
-            "--policy",
-            "zero",
-            "--max-steps",
-            "20",
-            "--fork-at",
-            "10",
-        ])
-        .args([
-            "--fork",
-            "fail:all=0.1",
-            "--width",
-            "320",
-            "--height",
-            "240",
-            "--out",
-        ])
-        .arg(&forked)
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let probe = Command::new("ffprobe")
-        .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
-        .args([
-            "-show_entries",
-            "stream=width,height,nb_read_frames",
-            "-of",
-            "csv=p=0",
-        ])
-        .arg(&forked)
-        .output()
-        .unwrap();
-    assert_eq!(String::from_utf8_lossy(&probe.stdout).trim(), "320,240,20");
+    let fork = [
+        "--policy",
+        "zero",
+        "--max-steps",
+        "20",
+        "--fork-at",
+        "10",
+        "--fork",
+        "fail:all=0.1",
+    ];
+    video(&[&fork[..], &size].concat(), &forked);
+    assert_eq!(probe(&forked, "width,height,nb_read_frames"), "320,240,20");
     // Bad sizes are refused before anything is written.
     let bad = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
         .args(["video", "--width", "321", "--out"])

@@ -179,6 +179,8 @@ pub enum LiveError {
     Breakpoint(#[from] BreakpointError),
     #[error(transparent)]
     Rewind(#[from] crate::telemetry::RewindError),
+    #[error("the episode is over: rewind or reset before forking")]
+    ForkAfterEnd,
     #[error("cannot write scenario {path}: {reason}")]
     SaveScenario { path: PathBuf, reason: String },
     #[error("the simulation thread stopped unexpectedly")]

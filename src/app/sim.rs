@@ -611,11 +611,7 @@ impl Sim {
             }
             Command::Fork(edits) => {
                 if self.session.is_over() {
-                    Err(LiveError::Record(crate::telemetry::RecordError::Env(
-                        crate::env::EnvError::BadState(
-                            "the episode is over: rewind or reset before forking".into(),
-                        ),
-                    )))
+                    Err(LiveError::ForkAfterEnd)
                 } else {
                     self.session.fork(&edits).map_err(LiveError::from)
                 }

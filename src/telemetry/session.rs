@@ -500,13 +500,13 @@ impl Session {
         lane.probe_now = state.probe_now;
         lane.probe_before = state.probe_now;
         lane.done = state.done;
-        lane.logger.continue_from(&self.lanes[0].logger);
         lane.fork_of = Some(described.clone());
         let episode = self.episodes_started.saturating_sub(1);
         lane.logger.set_time(self.global_step, episode);
         let mut meta = episode_meta(self.fatigue_triggers, self.seed, &lane.actor, &lane.env);
         meta.checkpoint = format!("{} ({described})", meta.checkpoint);
         lane.logger.log_episode(&meta, &lane.env, None)?;
+        // After the episode metadata, which starts a logger's trails afresh.
         lane.logger.continue_from(&self.lanes[0].logger);
         lane.logger.log_note(super::NoteLevel::Branch, &described)?;
         self.lanes.push(lane);
