@@ -11,7 +11,8 @@ run: setup
 	@CARGO=$(CARGO) ./scripts/run.sh
 
 # Every test, in the release profile (the one `run` builds, so CI compiles dependencies once).
-test: setup
+test:
+	@./scripts/setup.sh --test
 	$(CARGO) test --release
 
 bench: setup

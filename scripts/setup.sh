@@ -3,6 +3,8 @@
 # git-ignored folder .deps/. Safe to run any number of times.
 #   .deps/mujoco/lib/libmujoco.so.3.17.0 (+ libmujoco.so link)  from the mujoco==3.17.0 wheel
 #   .deps/rerun/rerun (only with --viewer)                        from the rerun-sdk==0.36.3 wheel
+#   Debian's ffmpeg and Mesa EGL for `gaitscope video` (apt-get, where missing; a warning if it can't)
+#   with --test: also Chromium and ChromeDriver for the browser tests (and then all are required)
 set -euo pipefail
 
 MUJOCO_VERSION=3.17.0
@@ -39,6 +41,38 @@ if [ ! -s "$lib_dir/libmujoco.so.$MUJOCO_VERSION" ]; then
 fi
 ln -sfn "libmujoco.so.$MUJOCO_VERSION" "$lib_dir/libmujoco.so"
 echo "setup: libmujoco ready in $lib_dir"
+
+# ensure_debian_packages warn|require PKG...: installs the missing ones (as root, or with sudo
+# that needs no password); otherwise prints the command that would, and with `require` stops.
+ensure_debian_packages() {
+  local mode=$1; shift
+  local missing=()
+  for package in "$@"; do
+    dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "install ok installed" || missing+=("$package")
+  done
+  [ ${#missing[@]} -eq 0 ] && return 0
+  local sudo=()
+  if [ "$(id -u)" -ne 0 ]; then
+    if sudo -n true 2>/dev/null; then sudo=(sudo -n); else
+      echo "setup: missing Debian packages: ${missing[*]}" >&2
+      echo "setup: install them with: sudo apt-get install --no-install-recommends ${missing[*]}" >&2
+      [ "$mode" = warn ] && return 0
+      exit 1
+    fi
+  fi
+  echo "setup: installing Debian packages: ${missing[*]}"
+  "${sudo[@]}" apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive "${sudo[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+}
+
+# Besides cargo: ffmpeg + Mesa EGL (video); for the tests also Chromium + ChromeDriver (web).
+video_packages=(ffmpeg libegl1 libegl-mesa0 libgl1-mesa-dri)
+if [ "${1:-}" = "--test" ]; then
+  ensure_debian_packages require "${video_packages[@]}" chromium chromium-driver
+  echo "setup: test packages ready"
+else
+  ensure_debian_packages warn "${video_packages[@]}"
+fi
 
 # The stock Rerun viewer, to open recordings; not needed to record or test.
 if [ "${1:-}" = "--viewer" ]; then

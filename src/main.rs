@@ -309,7 +309,7 @@ struct VideoArgs {
     /// Frames per second; 20 is real time (one frame per env step).
     #[arg(long, default_value_t = 20)]
     fps: u32,
-    /// track: follow the torso; fixed: a still view of start and goal (needs --features video).
+    /// track: follow the torso; fixed: a still view of start and goal.
     #[arg(long, default_value = "track", value_name = "track|fixed")]
     camera: String,
     #[command(flatten)]
@@ -975,7 +975,7 @@ fn view_command(args: ViewArgs) -> Result<()> {
 fn video_command(_: VideoArgs) -> Result<()> {
     bail!(
         "this gaitscope was built without the `video` feature (MuJoCo's offscreen renderer): \
-         cargo build --release --features video (needs libegl1, libgl1-mesa-dri and ffmpeg)"
+         build with the default features (needs libegl1, libgl1-mesa-dri and ffmpeg)"
     )
 }
 

@@ -241,6 +241,11 @@ impl Encoder {
     /// Starts ffmpeg on a temporary sibling of `out` (renamed at [`Self::finish`]).
     pub fn start(out: &Path, spec: FrameSpec) -> Result<Self, VideoError> {
         let tmp = out.with_extension("mp4.partial");
+        // Fail on an unwritable folder here, with the OS's reason, not as a broken pipe later.
+        std::fs::File::create(&tmp).map_err(|e| VideoError::Write {
+            path: out.to_owned(),
+            reason: e.to_string(),
+        })?;
         let child = Command::new("ffmpeg")
             .args([
                 "-loglevel",
@@ -266,7 +271,10 @@ impl Encoder {
             .stdin(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
-            .map_err(VideoError::NoEncoder)?;
+            .map_err(|e| {
+                let _ = std::fs::remove_file(&tmp);
+                VideoError::NoEncoder(e)
+            })?;
         Ok(Self {
             child: Some(child),
             tmp,
@@ -280,9 +288,20 @@ impl Encoder {
             .as_mut()
             .and_then(|c| c.stdin.as_mut())
             .ok_or_else(|| VideoError::Encoder("stdin closed".into()))?;
-        stdin
-            .write_all(frame)
-            .map_err(|e| VideoError::Encoder(format!("writing a frame: {e}")))
+        let Err(e) = stdin.write_all(frame) else {
+            return Ok(());
+        };
+        // ffmpeg quit: its own words say why better than the broken pipe does.
+        let said = self
+            .child
+            .take()
+            .and_then(|child| child.wait_with_output().ok())
+            .map(|o| String::from_utf8_lossy(&o.stderr).trim().to_string())
+            .filter(|s| !s.is_empty());
+        Err(VideoError::Encoder(match said {
+            Some(said) => said,
+            None => format!("writing a frame: {e}"),
+        }))
     }
 
     /// Closes the stream, waits for ffmpeg and moves the file into place.

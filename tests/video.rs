@@ -139,4 +139,32 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
         .output()
         .unwrap();
     assert!(String::from_utf8_lossy(&bad.stderr).contains("multiple of 4"));
+    // An unwritable folder and a machine without GL: one clear error each, no file left.
+    let missing = dir.path().join("no-such-folder").join("ant.mp4");
+    let bad = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["video", "--policy", "zero", "--max-steps", "3", "--out"])
+        .arg(&missing)
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("cannot write"));
+    let no_gl = dir.path().join("no-gl.mp4");
+    let bad = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["video", "--policy", "zero", "--max-steps", "3", "--out"])
+        .arg(&no_gl)
+        // glvnd finds no EGL vendor: what a machine without Mesa's EGL looks like.
+        .env(
+            "__EGL_VENDOR_LIBRARY_FILENAMES",
+            dir.path().join("none.json"),
+        )
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("no OpenGL for offscreen rendering"));
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains("partial") || n.starts_with("no-gl") || n.starts_with("odd"))
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
 }
