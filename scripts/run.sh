@@ -14,3 +14,5 @@ echo "run: no display; recording headlessly instead of opening the live viewer"
 "$cargo" run --release -- record "${models[@]}" --condition severe --episodes 2 --seed 0 \
   --out recordings/latest.rrd
 echo "run: open it on a machine with a display: gaitscope view recordings/latest.rrd"
+echo "run: or watch the same models live in a browser (this machine, or over ssh -L):"
+echo "  cargo run --release -- live --web ${models[*]} --condition severe"

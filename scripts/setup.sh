@@ -4,7 +4,8 @@
 #   .deps/mujoco/lib/libmujoco.so.3.17.0 (+ libmujoco.so link)  from the mujoco==3.17.0 wheel
 #   .deps/rerun/rerun (only with --viewer)                        from the rerun-sdk==0.36.3 wheel
 #   Debian's ffmpeg and Mesa EGL for `gaitscope video` (apt-get, where missing; a warning if it can't)
-#   with --test: also Chromium and ChromeDriver for the browser tests (and then all are required)
+#   with --test: also Chromium and ChromeDriver for the browser tests, Xvfb + Vulkan (lavapipe)
+#   and the Rerun viewer for `live` under a private X screen (and then all are required)
 set -euo pipefail
 
 MUJOCO_VERSION=3.17.0
@@ -68,14 +69,16 @@ ensure_debian_packages() {
 # Besides cargo: ffmpeg + Mesa EGL (video); for the tests also Chromium + ChromeDriver (web).
 video_packages=(ffmpeg libegl1 libegl-mesa0 libgl1-mesa-dri)
 if [ "${1:-}" = "--test" ]; then
-  ensure_debian_packages require "${video_packages[@]}" chromium chromium-driver
+  # Xvfb, Vulkan on the CPU and the viewer's X libraries: `live` under a private X screen.
+  ensure_debian_packages require "${video_packages[@]}" chromium chromium-driver \
+    xvfb xauth mesa-vulkan-drivers libudev1 libxkbcommon-x11-0 libxcursor1 libxrandr2 libxi6
   echo "setup: test packages ready"
 else
   ensure_debian_packages warn "${video_packages[@]}"
 fi
 
 # The stock Rerun viewer, to open recordings; not needed to record or test.
-if [ "${1:-}" = "--viewer" ]; then
+if [ "${1:-}" = "--viewer" ] || [ "${1:-}" = "--test" ]; then
   viewer="$deps/rerun/rerun"
   if [ ! -x "$viewer" ]; then
     echo "setup: fetching the Rerun $RERUN_VERSION viewer from PyPI (rerun-sdk==$RERUN_VERSION wheel)"

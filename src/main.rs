@@ -262,6 +262,26 @@ struct LiveArgs {
     /// Close after this many seconds and print the frame-rate / real-time report (scripts).
     #[arg(long, value_name = "SECONDS")]
     exit_after: Option<f64>,
+    /// Serve the session to a browser instead of opening windows: Rerun's web viewer and a
+    /// control page (no display needed; prints the URLs and an `ssh -L` line).
+    #[arg(long, conflicts_with_all = ["connect", "viewer"])]
+    web: bool,
+    /// Address the web servers listen on. Anything but loopback lets whoever reaches the
+    /// port drive the sim and watch the stream.
+    #[arg(
+        long,
+        value_name = "ADDR",
+        default_value = "127.0.0.1",
+        requires = "web"
+    )]
+    bind: std::net::IpAddr,
+    /// Port of the control page (the web viewer and its gRPC stream use the next two flags).
+    #[arg(long, value_name = "P", default_value_t = 9080, requires = "web")]
+    port: u16,
+    #[arg(long, value_name = "P", default_value_t = 9090, requires = "web")]
+    viewer_port: u16,
+    #[arg(long, value_name = "P", default_value_t = 9876, requires = "web")]
+    grpc_port: u16,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -831,9 +851,10 @@ fn record_command(args: RecordArgs) -> Result<()> {
 fn live_command(args: LiveArgs) -> Result<()> {
     use gaitscope::app::{self, viewer};
     use gaitscope::telemetry::{self, Sink};
-    if !cfg!(feature = "live") {
+    if !args.web && !cfg!(feature = "live") {
         bail!(
-            "this gaitscope was built without the `live` feature (the control panel); rebuild              with default features, or use `gaitscope record` to write a .rrd headlessly"
+            "this gaitscope was built without the `live` feature (the control panel); rebuild \
+             with default features, use `live --web`, or `gaitscope record` to write a .rrd"
         );
     }
     if let Some(secs) = args.exit_after
@@ -868,22 +889,12 @@ fn live_command(args: LiveArgs) -> Result<()> {
     };
     // Check what can be checked before any window opens: the input first, then the display.
     setup.validate()?;
-    viewer::require_display("gaitscope live")?;
-    let url = match &args.connect {
-        Some(url) => {
-            viewer::check_reachable(url)?;
-            url.clone()
+    let mut checkpoints = app::discover_checkpoints(std::path::Path::new("checkpoints"));
+    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
+        if !checkpoints.contains(dir) {
+            checkpoints.push(dir.clone());
         }
-        None => {
-            let path = viewer::find_viewer(args.viewer.as_deref())?;
-            let url = viewer::spawn_viewer(&path)?;
-            eprintln!(
-                "streaming to the Rerun viewer ({}) at {url}",
-                path.display()
-            );
-            url
-        }
-    };
+    }
     let recording_id = format!("gaitscope-live-{}", std::process::id());
     // The blueprint gets a 3-D view per model shown from the start (a model added later from
     // the panel streams too; the viewer's "+" adds a view for it).
@@ -892,28 +903,43 @@ fn live_command(args: LiveArgs) -> Result<()> {
         .iter()
         .map(|r| r.to_string())
         .collect();
-    let sink = Sink::Viewer {
-        url,
-        save: args.save.clone(),
+    let finished = if args.web {
+        live_web(&args, setup, checkpoints, &recording_id, &roots)?
+    } else {
+        viewer::require_display("gaitscope live")?;
+        let url = match &args.connect {
+            Some(url) => {
+                viewer::check_reachable(url)?;
+                url.clone()
+            }
+            None => {
+                let path = viewer::find_viewer(args.viewer.as_deref())?;
+                let url = viewer::spawn_viewer(&path)?;
+                eprintln!(
+                    "streaming to the Rerun viewer ({}) at {url}",
+                    path.display()
+                );
+                url
+            }
+        };
+        let sink = Sink::Viewer {
+            url,
+            save: args.save.clone(),
+        };
+        let (rec, _) = telemetry::open(&sink, &recording_id, &roots)?;
+        let sim = app::SimHandle::spawn(rec, setup)?;
+        let panel = run_panel(&sim, checkpoints, args.exit_after);
+        let finished = sim.shutdown();
+        let stats = panel?;
+        eprintln!(
+            "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
+            stats.frames,
+            stats.seconds,
+            stats.fps(),
+            stats.mean_frame_cpu_ms
+        );
+        finished
     };
-    let (rec, _) = telemetry::open(&sink, &recording_id, &roots)?;
-    let sim = app::SimHandle::spawn(rec, setup)?;
-    let mut checkpoints = app::discover_checkpoints(std::path::Path::new("checkpoints"));
-    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
-        if !checkpoints.contains(dir) {
-            checkpoints.push(dir.clone());
-        }
-    }
-    let panel = run_panel(&sim, checkpoints, args.exit_after);
-    let finished = sim.shutdown();
-    let stats = panel?;
-    eprintln!(
-        "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
-        stats.frames,
-        stats.seconds,
-        stats.fps(),
-        stats.mean_frame_cpu_ms
-    );
     // A viewer closed before the end leaves data unsent; the session's report still prints.
     let (report, unflushed) = match finished {
         Ok(report) => (report, None),
@@ -937,6 +963,69 @@ fn live_command(args: LiveArgs) -> Result<()> {
         Some(e) => Err(e.into()),
         None => Ok(()),
     }
+}
+
+/// `live --web`: the same session, its stream served to Rerun's web viewer and its controls
+/// to a page, until the page quits it or --exit-after passes.
+#[cfg(feature = "web")]
+fn live_web(
+    args: &LiveArgs,
+    setup: gaitscope::app::LiveSetup,
+    checkpoints: Vec<PathBuf>,
+    recording_id: &str,
+    roots: &[String],
+) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
+    use gaitscope::app::{self, web};
+    use gaitscope::telemetry::{self, Sink};
+    let options = web::WebOptions {
+        bind: args.bind,
+        port: args.port,
+        viewer_port: args.viewer_port,
+        grpc_port: args.grpc_port,
+    };
+    options.check_ports()?;
+    if !options.is_loopback() {
+        eprintln!(
+            "warning: listening on {}: anyone who can reach these ports can drive the sim and \
+             watch the stream (the default, 127.0.0.1, keeps them on this machine)",
+            options.bind
+        );
+    }
+    let sink = Sink::Serve {
+        bind: options.bind,
+        port: options.grpc_port,
+        save: args.save.clone(),
+    };
+    let (rec, _) = telemetry::open(&sink, recording_id, roots)?;
+    let sim = app::SimHandle::spawn(rec, setup)?;
+    let server = web::WebServer::start(options.clone(), checkpoints)?;
+    eprintln!("control page:     {}", options.control_url());
+    eprintln!("Rerun web viewer: {}", options.viewer_url());
+    eprintln!("from another machine: {}", options.ssh_tunnel());
+    eprintln!("(Quit on the page, or Ctrl-C, ends the session)");
+    let deadline = args
+        .exit_after
+        .map(|s| std::time::Instant::now() + std::time::Duration::from_secs_f64(s));
+    let stats = server.serve(&sim, deadline);
+    let finished = sim.shutdown();
+    eprintln!(
+        "web: {} requests in {:.1} s ({} commands, {} refused)",
+        stats.requests, stats.seconds, stats.commands, stats.refused
+    );
+    Ok(finished)
+}
+
+#[cfg(not(feature = "web"))]
+fn live_web(
+    _: &LiveArgs,
+    _: gaitscope::app::LiveSetup,
+    _: Vec<PathBuf>,
+    _: &str,
+    _: &[String],
+) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
+    bail!(
+        "this gaitscope was built without the `web` feature (Rerun's web viewer and the control page); build with the default features"
+    )
 }
 
 #[cfg(feature = "live")]

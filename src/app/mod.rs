@@ -16,6 +16,9 @@ pub mod viewer;
 #[cfg(feature = "live")]
 pub mod panel;
 
+#[cfg(feature = "web")]
+pub mod web;
+
 pub use breakpoint::{BreakHit, Breakpoint, BreakpointError};
 pub use sim::{LaneView, LiveSetup, SimHandle, SimReport, Snapshot, SpeedReport};
 

@@ -199,6 +199,11 @@ pub struct Snapshot {
     pub has_probe: bool,
     /// The scenario episodes run under (from the next reset once changed).
     pub scenario: Option<String>,
+    /// This episode's hand-made overrides (main model) as a scenario file's JSON: what
+    /// "save" writes, and what the web page downloads.
+    pub recorded_scenario: Option<serde_json::Value>,
+    /// Commands the sim thread has taken so far, in the order they were sent.
+    pub commands_handled: u64,
     /// The simulation thread has stopped.
     pub stopped: bool,
 }
@@ -266,7 +271,8 @@ impl SimHandle {
             paused: setup.paused,
             speed: setup.speed,
             dt,
-            step_once: false,
+            steps_pending: 0,
+            commands_handled: 0,
             over_since: None,
             message: None,
             breakpoints: setup.breakpoints.clone(),
@@ -360,7 +366,10 @@ struct Sim {
     paused: bool,
     speed: f64,
     dt: f64,
-    step_once: bool,
+    /// Single steps asked for while paused, not yet taken.
+    steps_pending: usize,
+    /// Commands taken off the channel so far (a front-end's receipt: its n-th command applied).
+    commands_handled: u64,
     /// When every model's episode ended (the next starts after [`HOLD_FINISHED`]).
     over_since: Option<Instant>,
     message: Option<String>,
@@ -389,7 +398,7 @@ impl Sim {
         let mut last_tick = Instant::now();
         loop {
             // Commands first; wait for one until the next step is due (or idle while paused).
-            let running = !self.paused || self.step_once;
+            let running = !self.paused || self.steps_pending > 0;
             let wait = if running {
                 next_tick.saturating_duration_since(Instant::now())
             } else {
@@ -404,12 +413,13 @@ impl Sim {
                 }
                 Err(RecvTimeoutError::Timeout) => {}
             }
-            if self.paused && !self.step_once {
+            if self.paused && self.steps_pending == 0 {
                 next_tick = Instant::now();
                 last_tick = next_tick;
                 continue;
             }
-            let stepping_once = std::mem::take(&mut self.step_once);
+            let stepping_once = self.steps_pending > 0;
+            self.steps_pending = self.steps_pending.saturating_sub(1);
             let now = Instant::now();
             let since_last_tick = (now - last_tick).min(MAX_LAG);
             last_tick = now;
@@ -552,6 +562,7 @@ impl Sim {
 
     fn handle(&mut self, command: Command) {
         self.message = None;
+        self.commands_handled += 1;
         let result = match command {
             Command::Override { actuator, change } => self
                 .session
@@ -584,7 +595,7 @@ impl Sim {
                 Ok(())
             }
             Command::StepOnce => {
-                self.step_once = true;
+                self.steps_pending += 1;
                 self.break_hit = None;
                 Ok(())
             }
@@ -634,16 +645,13 @@ impl Sim {
     /// The main lane's hand-made overrides of this episode, as a scenario file that replays
     /// them (`rollout --scenario`), with this session's fatigue rule.
     fn save_scenario(&mut self, path: &std::path::Path) -> Result<(), LiveError> {
-        let Some(main) = self.session.lanes().first() else {
-            return Ok(());
-        };
-        let env = main.env();
-        let fatigue = env.damage().fatigue_triggers().then(|| env.condition());
         let name = path
             .file_stem()
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| "live-session".into());
-        let value = crate::scenario::from_events(&name, fatigue, env.damage().events());
+        let Some(value) = self.recorded_scenario(&name) else {
+            return Ok(());
+        };
         let text = serde_json::to_string_pretty(&value).map_err(|e| LiveError::SaveScenario {
             path: path.to_owned(),
             reason: e.to_string(),
@@ -656,6 +664,17 @@ impl Sim {
         )?;
         self.message = Some(format!("saved the overrides to {}", path.display()));
         Ok(())
+    }
+
+    /// The main lane's hand-made overrides of this episode as a scenario named `name`.
+    fn recorded_scenario(&self, name: &str) -> Option<serde_json::Value> {
+        let env = self.session.lanes().first()?.env();
+        let fatigue = env.damage().fatigue_triggers().then(|| env.condition());
+        Some(crate::scenario::from_events(
+            name,
+            fatigue,
+            env.damage().events(),
+        ))
     }
 
     fn set_breakpoints(&mut self, list: Vec<Breakpoint>) -> Result<(), LiveError> {
@@ -760,6 +779,8 @@ impl Sim {
                 .lanes()
                 .first()
                 .is_some_and(|l| l.probe().is_some()),
+            recorded_scenario: self.recorded_scenario("live-session"),
+            commands_handled: self.commands_handled,
             stopped: false,
         }
     }

@@ -95,7 +95,19 @@ pub enum Sink {
         url: String,
         save: Option<PathBuf>,
     },
+    /// Our own gRPC server on `bind:port` (for Rerun's web viewer, or any viewer that connects
+    /// to `rerun+http://bind:port/proxy`), and optionally a file as well.
+    #[cfg(feature = "web")]
+    Serve {
+        bind: std::net::IpAddr,
+        port: u16,
+        save: Option<PathBuf>,
+    },
 }
+
+/// What the gRPC server keeps for viewers that connect late (oldest data dropped beyond it).
+#[cfg(feature = "web")]
+pub const SERVE_MEMORY_LIMIT_BYTES: u64 = 2 << 30;
 
 fn file_sink_error(path: &std::path::Path, e: impl std::fmt::Display) -> TelemetryError {
     TelemetryError::File {
@@ -147,6 +159,28 @@ pub fn open(
                     builder.set_sinks((file, viewer))?
                 }
                 None => builder.set_sinks((viewer,))?,
+            };
+            (rec, None)
+        }
+        #[cfg(feature = "web")]
+        Sink::Serve { bind, port, save } => {
+            let options = rerun::ServerOptions {
+                memory_limit: rerun::MemoryLimit::from_bytes(SERVE_MEMORY_LIMIT_BYTES),
+                ..Default::default()
+            };
+            let server = rerun::grpc_server::GrpcServerSink::new(&bind.to_string(), *port, options)
+                .map_err(|e| TelemetryError::Url {
+                    url: format!("{bind}:{port}"),
+                    reason: e.to_string(),
+                })?;
+            let rec = match save {
+                Some(path) => {
+                    create_parent_dir(path)?;
+                    let file =
+                        rerun::sink::FileSink::new(path).map_err(|e| file_sink_error(path, e))?;
+                    builder.set_sinks((file, server))?
+                }
+                None => builder.set_sinks((server,))?,
             };
             (rec, None)
         }

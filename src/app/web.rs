@@ -1,0 +1,771 @@
+//! `gaitscope live --web`: the live session in a browser, for machines without a display.
+//!
+//! ```text
+//!  control page ──POST /command (JSON) ──▶ WebRequest → Command ──▶ sim thread (as the panel)
+//!        ▲                                                            │
+//!        └──── GET /events (server-sent events: the Snapshot, ≤ 20 Hz) ◀┘
+//!  Rerun web viewer (HTTP, embedded by the rerun crate) ◀── gRPC server ◀── the same stream
+//! ```
+//! The page is a front-end like the egui panel: it only sends [`Command`]s (through
+//! [`commands`], which checks each request against the snapshot first) and reads
+//! [`Snapshot`]s. Every server binds the address asked for, loopback by default.
+
+use std::io::{Read, Write};
+use std::net::{IpAddr, SocketAddr, TcpListener};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde::Deserialize;
+use serde_json::{Value, json};
+
+use super::{Breakpoint, Command, LiveCondition, MAX_SPEED, MIN_SPEED, SimHandle, Slot, Snapshot};
+use crate::damage::{DamageEdit, EditTarget, JointState};
+use crate::policy::ActionMode;
+
+/// The control page: static HTML and JS, no build step.
+const PAGE: &str = include_str!("web/control.html");
+/// How often the event stream looks for a new snapshot (it sends only changes).
+const EVENT_PERIOD: Duration = Duration::from_millis(50);
+/// A comment line this often keeps idle connections (and proxies) open.
+const KEEP_ALIVE: Duration = Duration::from_secs(5);
+const MAX_BODY_BYTES: u64 = 256 * 1024;
+const MAX_EVENT_CLIENTS: usize = 16;
+/// Most single steps one request may ask for.
+pub const MAX_STEPS_PER_REQUEST: usize = 1000;
+
+/// Where the three servers listen.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WebOptions {
+    pub bind: IpAddr,
+    /// The control page.
+    pub port: u16,
+    /// Rerun's web viewer (HTML + wasm).
+    pub viewer_port: u16,
+    /// The gRPC server the web viewer reads the stream from.
+    pub grpc_port: u16,
+}
+
+impl WebOptions {
+    /// Rerun's own defaults for the viewer and gRPC ports, the control page beside them.
+    pub const DEFAULT_PORT: u16 = 9080;
+    pub const DEFAULT_VIEWER_PORT: u16 = 9090;
+    pub const DEFAULT_GRPC_PORT: u16 = 9876;
+
+    /// The host a browser on this machine (or at the end of an `ssh -L`) uses.
+    fn host(&self) -> String {
+        match self.bind {
+            IpAddr::V4(ip) if ip.is_unspecified() => "127.0.0.1".into(),
+            IpAddr::V6(ip) if ip.is_unspecified() => "[::1]".into(),
+            IpAddr::V4(ip) => ip.to_string(),
+            IpAddr::V6(ip) => format!("[{ip}]"),
+        }
+    }
+
+    pub fn control_url(&self) -> String {
+        format!("http://{}:{}/", self.host(), self.port)
+    }
+
+    pub fn grpc_url(&self) -> String {
+        format!("rerun+http://{}:{}/proxy", self.host(), self.grpc_port)
+    }
+
+    /// The web viewer, told where the stream is.
+    pub fn viewer_url(&self) -> String {
+        format!(
+            "http://{}:{}/?url={}",
+            self.host(),
+            self.viewer_port,
+            percent_encode(&self.grpc_url())
+        )
+    }
+
+    /// The tunnel that serves all three to a laptop: `ssh -L … user@this-machine`.
+    pub fn ssh_tunnel(&self) -> String {
+        let forward = |p: u16| format!("-L {p}:{}:{p}", self.host());
+        format!(
+            "ssh {} {} {} USER@THIS-MACHINE",
+            forward(self.port),
+            forward(self.viewer_port),
+            forward(self.grpc_port)
+        )
+    }
+
+    pub fn is_loopback(&self) -> bool {
+        self.bind.is_loopback()
+    }
+
+    /// Each port free on the bind address, before anything starts (Rerun's gRPC server
+    /// binds on its own thread and would only log a failure).
+    pub fn check_ports(&self) -> Result<(), WebError> {
+        let ports = [
+            ("control page", self.port),
+            ("web viewer", self.viewer_port),
+            ("gRPC stream", self.grpc_port),
+        ];
+        for (i, (what, port)) in ports.iter().enumerate() {
+            if ports[..i].iter().any(|(_, p)| p == port) {
+                return Err(WebError::SamePort { port: *port });
+            }
+            let addr = SocketAddr::new(self.bind, *port);
+            TcpListener::bind(addr).map_err(|e| WebError::Bind {
+                what,
+                addr,
+                reason: e.to_string(),
+            })?;
+        }
+        Ok(())
+    }
+}
+
+fn percent_encode(text: &str) -> String {
+    text.bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'.' | b'_' | b'~' => {
+                (b as char).to_string()
+            }
+            _ => format!("%{b:02X}"),
+        })
+        .collect()
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum WebError {
+    #[error("cannot listen for the {what} on {addr}: {reason} (pick another port)")]
+    Bind {
+        what: &'static str,
+        addr: SocketAddr,
+        reason: String,
+    },
+    #[error("port {port} is given twice: the control page, web viewer and gRPC need one each")]
+    SamePort { port: u16 },
+    #[error("starting Rerun's web viewer: {0}")]
+    Viewer(String),
+}
+
+/// The running web front-end: Rerun's web viewer and the control page's HTTP server.
+pub struct WebServer {
+    options: WebOptions,
+    control: tiny_http::Server,
+    _viewer: re_web_viewer_server::WebViewerServer,
+    /// Checkpoint folders the page may open (the page never names an arbitrary path).
+    checkpoints: Vec<PathBuf>,
+}
+
+/// What the control server did, for the end-of-session report.
+#[derive(Debug, Clone, Default)]
+pub struct WebStats {
+    pub seconds: f64,
+    pub requests: u64,
+    pub commands: u64,
+    pub refused: u64,
+}
+
+impl WebServer {
+    /// Starts the web viewer and binds the control page (the gRPC server is the stream's sink).
+    pub fn start(options: WebOptions, checkpoints: Vec<PathBuf>) -> Result<Self, WebError> {
+        let viewer = re_web_viewer_server::WebViewerServer::new(
+            &options.bind.to_string(),
+            options.viewer_port.into(),
+        )
+        .map_err(|e| WebError::Viewer(e.to_string()))?;
+        let addr = SocketAddr::new(options.bind, options.port);
+        let control = tiny_http::Server::http(addr).map_err(|e| WebError::Bind {
+            what: "control page",
+            addr,
+            reason: e.to_string(),
+        })?;
+        Ok(Self {
+            options,
+            control,
+            _viewer: viewer,
+            checkpoints,
+        })
+    }
+
+    pub fn options(&self) -> &WebOptions {
+        &self.options
+    }
+
+    /// Answers requests until the sim stops (the page's Quit) or `deadline` passes.
+    pub fn serve(&self, sim: &SimHandle, deadline: Option<Instant>) -> WebStats {
+        let started = Instant::now();
+        let mut stats = WebStats::default();
+        let clients = Arc::new(AtomicUsize::new(0));
+        let mut sent = 0u64;
+        loop {
+            if sim.snapshot().stopped || deadline.is_some_and(|d| Instant::now() >= d) {
+                break;
+            }
+            let request = match self.control.recv_timeout(Duration::from_millis(100)) {
+                Ok(Some(request)) => request,
+                Ok(None) => continue,
+                Err(_) => break,
+            };
+            stats.requests += 1;
+            match self.route(request, sim, &clients, &mut sent) {
+                Routed::Command => stats.commands += 1,
+                Routed::Refused => stats.refused += 1,
+                Routed::Other => {}
+            }
+        }
+        stats.seconds = started.elapsed().as_secs_f64();
+        stats
+    }
+
+    fn route(
+        &self,
+        mut request: tiny_http::Request,
+        sim: &SimHandle,
+        clients: &Arc<AtomicUsize>,
+        sent: &mut u64,
+    ) -> Routed {
+        if let Err(reason) = self.check_origin(&request) {
+            respond(request, 403, &json!({ "error": reason }));
+            return Routed::Refused;
+        }
+        let path = request.url().split('?').next().unwrap_or("/").to_string();
+        match (request.method(), path.as_str()) {
+            (tiny_http::Method::Get, "/") => {
+                let response = tiny_http::Response::from_string(PAGE)
+                    .with_header(header("Content-Type", "text/html; charset=utf-8"));
+                let _ = request.respond(response);
+                Routed::Other
+            }
+            (tiny_http::Method::Get, "/state") => {
+                let body = self.snapshot_json(&sim.snapshot());
+                respond(request, 200, &body);
+                Routed::Other
+            }
+            (tiny_http::Method::Get, "/scenario.json") => {
+                let scenario = sim.snapshot().recorded_scenario.unwrap_or(Value::Null);
+                let text = serde_json::to_string_pretty(&scenario).unwrap_or_default();
+                let response = tiny_http::Response::from_string(format!("{text}\n"))
+                    .with_header(header("Content-Type", "application/json"))
+                    .with_header(header(
+                        "Content-Disposition",
+                        "attachment; filename=\"live-session.json\"",
+                    ));
+                let _ = request.respond(response);
+                Routed::Other
+            }
+            (tiny_http::Method::Get, "/events") => {
+                if clients.load(Ordering::SeqCst) >= MAX_EVENT_CLIENTS {
+                    respond(request, 503, &json!({ "error": "too many open pages" }));
+                    return Routed::Refused;
+                }
+                self.stream_events(request, sim, clients.clone());
+                Routed::Other
+            }
+            (tiny_http::Method::Post, "/command") => {
+                let snapshot = sim.snapshot();
+                match self.read_command(&mut request, &snapshot) {
+                    Ok(commands) => {
+                        let n = commands.len() as u64;
+                        let delivered = commands.into_iter().all(|c| sim.send(c));
+                        if !delivered {
+                            respond(request, 503, &json!({ "error": "the simulation stopped" }));
+                            return Routed::Refused;
+                        }
+                        // The page is the sim's only sender: its command has been applied once
+                        // the snapshot's `commands_handled` reaches this receipt.
+                        *sent += n;
+                        respond(request, 200, &json!({ "ok": true, "receipt": *sent }));
+                        Routed::Command
+                    }
+                    Err(error) => {
+                        respond(request, 400, &json!({ "error": error }));
+                        Routed::Refused
+                    }
+                }
+            }
+            _ => {
+                respond(
+                    request,
+                    404,
+                    &json!({ "error": format!("no such page: {path}") }),
+                );
+                Routed::Refused
+            }
+        }
+    }
+
+    /// Loopback servers answer only pages that name a loopback host (no DNS rebinding), and
+    /// commands only as JSON (a cross-site form post cannot send that without permission).
+    fn check_origin(&self, request: &tiny_http::Request) -> Result<(), String> {
+        let get = |name: &'static str| {
+            request
+                .headers()
+                .iter()
+                .find(|h| h.field.equiv(name))
+                .map(|h| h.value.as_str().to_string())
+        };
+        if self.options.is_loopback() {
+            let host = get("Host").unwrap_or_default();
+            let name = host.rsplit_once(':').map_or(host.as_str(), |(h, _)| h);
+            if !matches!(name, "127.0.0.1" | "localhost" | "[::1]") {
+                return Err(format!(
+                    "this server is bound to loopback and answers only localhost, not '{host}'"
+                ));
+            }
+        }
+        if *request.method() == tiny_http::Method::Post {
+            let kind = get("Content-Type").unwrap_or_default();
+            if !kind.starts_with("application/json") {
+                return Err("commands must be sent as application/json".into());
+            }
+        }
+        Ok(())
+    }
+
+    fn read_command(
+        &self,
+        request: &mut tiny_http::Request,
+        snapshot: &Snapshot,
+    ) -> Result<Vec<Command>, String> {
+        let mut body = String::new();
+        request
+            .as_reader()
+            .take(MAX_BODY_BYTES + 1)
+            .read_to_string(&mut body)
+            .map_err(|e| format!("reading the request: {e}"))?;
+        if body.len() as u64 > MAX_BODY_BYTES {
+            return Err(format!("request larger than {MAX_BODY_BYTES} bytes"));
+        }
+        let request: WebRequest =
+            serde_json::from_str(&body).map_err(|e| format!("malformed request: {e}"))?;
+        commands(request, snapshot, &self.checkpoints)
+    }
+
+    /// Server-sent events on their own thread: a snapshot whenever it changed, until the
+    /// page goes away or the sim stops.
+    fn stream_events(
+        &self,
+        request: tiny_http::Request,
+        sim: &SimHandle,
+        clients: Arc<AtomicUsize>,
+    ) {
+        let shared = sim.shared_snapshot();
+        let statics = self.statics();
+        clients.fetch_add(1, Ordering::SeqCst);
+        let open = clients.clone();
+        let spawned = std::thread::Builder::new()
+            .name("gaitscope-web-events".into())
+            .spawn(move || {
+                // Our own framing on the raw socket: tiny_http's chunked writer would hold
+                // events back until 8 KiB had gathered.
+                let mut out = request.into_writer();
+                let _ = event_loop(&mut out, &shared, &statics);
+                open.fetch_sub(1, Ordering::SeqCst);
+            });
+        if spawned.is_err() {
+            clients.fetch_sub(1, Ordering::SeqCst);
+        }
+    }
+
+    /// What never changes during a session: offered checkpoints and bundled scenarios.
+    fn statics(&self) -> Value {
+        json!({
+            "checkpoints": self.checkpoints.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
+            "scenarios": crate::scenario::OOD_SUITE.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
+            "viewer_url": self.options.viewer_url(),
+            "limits": { "min_speed": MIN_SPEED, "max_speed": MAX_SPEED, "max_steps": MAX_STEPS_PER_REQUEST },
+        })
+    }
+
+    fn snapshot_json(&self, snapshot: &Snapshot) -> Value {
+        let mut value = snapshot_json(snapshot);
+        value["session"] = self.statics();
+        value
+    }
+}
+
+enum Routed {
+    Command,
+    Refused,
+    Other,
+}
+
+fn event_loop(
+    out: &mut dyn Write,
+    shared: &Arc<Mutex<Snapshot>>,
+    statics: &Value,
+) -> std::io::Result<()> {
+    out.write_all(
+        b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-cache\r\n\
+          Connection: close\r\n\r\n",
+    )?;
+    let mut last: Option<Snapshot> = None;
+    let mut last_write = Instant::now();
+    loop {
+        let snapshot = shared
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+            .clone();
+        if last.as_ref() != Some(&snapshot) {
+            let mut value = snapshot_json(&snapshot);
+            value["session"] = statics.clone();
+            write!(out, "data: {value}\n\n")?;
+            out.flush()?;
+            last_write = Instant::now();
+            if snapshot.stopped {
+                return Ok(());
+            }
+            last = Some(snapshot);
+        } else if last_write.elapsed() >= KEEP_ALIVE {
+            out.write_all(b": keep-alive\n\n")?;
+            out.flush()?;
+            last_write = Instant::now();
+        }
+        std::thread::sleep(EVENT_PERIOD);
+    }
+}
+
+fn header(name: &str, value: &str) -> tiny_http::Header {
+    // Both are ASCII literals of ours: this cannot fail.
+    tiny_http::Header::from_bytes(name.as_bytes(), value.as_bytes())
+        .unwrap_or_else(|_| unreachable!("ASCII header {name}"))
+}
+
+fn respond(request: tiny_http::Request, status: u16, body: &Value) {
+    let response = tiny_http::Response::from_string(body.to_string())
+        .with_status_code(status)
+        .with_header(header("Content-Type", "application/json"))
+        .with_header(header("Cache-Control", "no-store"));
+    let _ = request.respond(response);
+}
+
+/// What the page may ask, one JSON object each: `{"command": "pause"}`,
+/// `{"command": "edit", "edit": "fail:ankle_3"}`, `{"command": "step", "count": 5}`…
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(tag = "command", rename_all = "snake_case", deny_unknown_fields)]
+pub enum WebRequest {
+    Pause,
+    Resume,
+    Step {
+        #[serde(default = "one")]
+        count: usize,
+    },
+    Speed {
+        value: f64,
+    },
+    Reset,
+    Condition {
+        value: String,
+    },
+    Seed {
+        value: u64,
+    },
+    StepLimit {
+        value: usize,
+    },
+    /// Damage edits in the CLI's syntax (`fail:ankle_3`, `scale:hip_1=0.4`, `heal:all`).
+    Edit {
+        edit: String,
+    },
+    Sampled {
+        on: bool,
+    },
+    Compare {
+        on: bool,
+    },
+    /// Open one of the offered checkpoint folders in `slot` (`main` or `compare`).
+    Load {
+        slot: String,
+        dir: String,
+    },
+    BreakOn {
+        list: String,
+    },
+    Rewind {
+        step: usize,
+    },
+    Fork {
+        edits: String,
+    },
+    EndFork,
+    /// A bundled scenario by `name`, an uploaded scenario file's `json`, or neither: none.
+    Scenario {
+        #[serde(default)]
+        name: Option<String>,
+        #[serde(default)]
+        json: Option<String>,
+    },
+    Quit,
+}
+
+fn one() -> usize {
+    1
+}
+
+/// The commands a request stands for, or why it changes nothing. Checked here against the
+/// snapshot so that the page hears at once; the sim thread checks again as it applies them.
+pub fn commands(
+    request: WebRequest,
+    snapshot: &Snapshot,
+    checkpoints: &[PathBuf],
+) -> Result<Vec<Command>, String> {
+    let joint_names = || {
+        snapshot
+            .lanes
+            .first()
+            .map(|l| l.joint_names.clone())
+            .ok_or_else(|| "no model is loaded".to_string())
+    };
+    // One edit list → one override per joint it names, joints checked by name.
+    let resolve = |text: &str| -> Result<Vec<(usize, DamageEdit)>, String> {
+        let names = joint_names()?;
+        let edits = DamageEdit::parse_list(text).map_err(|e| e.to_string())?;
+        let mut out = Vec::new();
+        for edit in edits {
+            match &edit.target {
+                EditTarget::All => out.extend((0..names.len()).map(|i| (i, edit.clone()))),
+                EditTarget::Joint(name) => match names.iter().position(|n| n == name) {
+                    Some(i) => out.push((i, edit.clone())),
+                    None => {
+                        return Err(format!(
+                            "unknown joint '{name}' (the Ant's joints: {})",
+                            names.join(", ")
+                        ));
+                    }
+                },
+            }
+        }
+        Ok(out)
+    };
+    Ok(match request {
+        WebRequest::Pause => vec![Command::Pause],
+        WebRequest::Resume => vec![Command::Resume],
+        WebRequest::Step { count } => {
+            if !(1..=MAX_STEPS_PER_REQUEST).contains(&count) {
+                return Err(format!(
+                    "step count must be 1 to {MAX_STEPS_PER_REQUEST}, got {count}"
+                ));
+            }
+            vec![Command::StepOnce; count]
+        }
+        WebRequest::Speed { value } => {
+            if !(value.is_finite() && (MIN_SPEED..=MAX_SPEED).contains(&value)) {
+                return Err(format!(
+                    "speed must be between {MIN_SPEED}× and {MAX_SPEED}× real time, got {value}"
+                ));
+            }
+            vec![Command::SetSpeed(value)]
+        }
+        WebRequest::Reset => vec![Command::Reset],
+        WebRequest::Condition { value } => {
+            vec![Command::SetCondition(value.parse::<LiveCondition>()?)]
+        }
+        WebRequest::Seed { value } => vec![Command::SetSeed(value)],
+        WebRequest::StepLimit { value } => {
+            if value == 0 {
+                return Err("the step limit must be at least 1".into());
+            }
+            vec![Command::SetStepLimit(value)]
+        }
+        WebRequest::Edit { edit } => resolve(&edit)?
+            .into_iter()
+            .map(|(actuator, edit)| Command::Override {
+                actuator,
+                change: edit.change,
+            })
+            .collect(),
+        WebRequest::Sampled { on } => vec![Command::SetActionMode(if on {
+            ActionMode::Sampled
+        } else {
+            ActionMode::Deterministic
+        })],
+        WebRequest::Compare { on } => {
+            if on && snapshot.compare_checkpoint.is_none() {
+                return Err("load a second model first".into());
+            }
+            vec![Command::SetCompare(on)]
+        }
+        WebRequest::Load { slot, dir } => {
+            let slot = match slot.as_str() {
+                "main" => Slot::Main,
+                "compare" => Slot::Compare,
+                other => return Err(format!("unknown slot '{other}' (main or compare)")),
+            };
+            let Some(dir) = checkpoints.iter().find(|p| p.display().to_string() == dir) else {
+                return Err(format!(
+                    "'{dir}' is not one of the offered checkpoints ({})",
+                    checkpoints
+                        .iter()
+                        .map(|p| p.display().to_string())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ));
+            };
+            vec![Command::Load {
+                slot,
+                dir: dir.clone(),
+            }]
+        }
+        WebRequest::BreakOn { list } => {
+            let list = Breakpoint::parse_list(&list).map_err(|e| e.to_string())?;
+            let names = joint_names()?;
+            for b in &list {
+                if let Breakpoint::Trigger(Some(joint)) = b
+                    && !names.contains(joint)
+                {
+                    return Err(format!(
+                        "unknown joint '{joint}' (the Ant's joints: {})",
+                        names.join(", ")
+                    ));
+                }
+            }
+            vec![Command::SetBreakpoints(list)]
+        }
+        WebRequest::Rewind { step } => {
+            if step > snapshot.rewindable {
+                return Err(format!(
+                    "can rewind to steps 0 to {} of this episode, not {step}",
+                    snapshot.rewindable
+                ));
+            }
+            vec![Command::Rewind(step)]
+        }
+        WebRequest::Fork { edits } => {
+            resolve(&edits)?;
+            let edits = DamageEdit::parse_list(&edits).map_err(|e| e.to_string())?;
+            vec![Command::Fork(edits)]
+        }
+        WebRequest::EndFork => vec![Command::EndFork],
+        WebRequest::Scenario { name, json } => {
+            let scenario = match (name, json) {
+                (Some(_), Some(_)) => {
+                    return Err("give a scenario's name or its JSON, not both".into());
+                }
+                (Some(name), None) => {
+                    if !crate::scenario::OOD_SUITE.iter().any(|(n, _)| *n == name) {
+                        return Err(format!(
+                            "no bundled scenario '{name}' (bundled: {}; or upload a file)",
+                            crate::scenario::OOD_SUITE.map(|(n, _)| n).join(", ")
+                        ));
+                    }
+                    Some(crate::scenario::Scenario::load(&name).map_err(|e| e.to_string())?)
+                }
+                (None, Some(text)) => Some(
+                    crate::scenario::Scenario::from_json(&text, "uploaded file")
+                        .map_err(|e| e.to_string())?,
+                ),
+                (None, None) => None,
+            };
+            vec![Command::SetScenario(scenario)]
+        }
+        WebRequest::Quit => vec![Command::Quit],
+    })
+}
+
+fn state_name(state: JointState) -> &'static str {
+    match state {
+        JointState::Healthy => "healthy",
+        JointState::Triggered => "triggered",
+        JointState::Manual => "manual",
+    }
+}
+
+/// The snapshot as the page reads it.
+pub fn snapshot_json(s: &Snapshot) -> Value {
+    let lanes: Vec<Value> = s
+        .lanes
+        .iter()
+        .map(|l| {
+            let joints: Vec<Value> = (0..l.joint_names.len())
+                .map(|i| {
+                    json!({
+                        "name": l.joint_names[i],
+                        "fatigue": l.fatigue[i],
+                        "state": state_name(l.states[i]),
+                        "scale": l.scale[i],
+                        "damaged": l.damaged[i],
+                        "probe": l.probe.map(|p| p[i]),
+                        "commanded": l.commanded[i],
+                        "applied": l.applied[i],
+                    })
+                })
+                .collect();
+            json!({
+                "label": l.label,
+                "root": l.root,
+                "encoder": l.encoder,
+                "checkpoint": l.checkpoint.as_ref().map(|p| p.display().to_string()),
+                "step": l.step,
+                "distance": l.distance,
+                "success": l.success,
+                "done": l.done,
+                "threshold": l.threshold,
+                "joints": joints,
+                "events": l.events,
+                "last_event": l.last_event,
+                "fork_of": l.fork_of,
+            })
+        })
+        .collect();
+    json!({
+        "paused": s.paused,
+        "speed": s.speed,
+        "condition": s.condition.name(),
+        "seed": s.seed,
+        "step_limit": s.step_limit,
+        "sampled": s.mode == ActionMode::Sampled,
+        "compare": s.compare,
+        "compare_checkpoint": s.compare_checkpoint.as_ref().map(|p| p.display().to_string()),
+        "episode_seed": s.episode_seed,
+        "episodes": s.episodes,
+        "global_step": s.global_step,
+        "steps_per_s": s.steps_per_s,
+        "target_steps_per_s": s.target_steps_per_s,
+        "message": s.message,
+        "breakpoints": s.breakpoints.iter().map(|b| b.to_string()).collect::<Vec<_>>(),
+        "break_hit": s.break_hit.as_ref().map(|b| b.to_string()),
+        "rewindable": s.rewindable,
+        "branches": s.branches,
+        "has_probe": s.has_probe,
+        "scenario": s.scenario,
+        "has_recorded_overrides": s.recorded_scenario.as_ref()
+            .and_then(|v| v.get("edits")).and_then(|e| e.as_array()).is_some_and(|e| !e.is_empty()),
+        "commands_handled": s.commands_handled,
+        "stopped": s.stopped,
+        "lanes": lanes,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_name_loopback_and_encode_the_stream_address() {
+        let options = WebOptions {
+            bind: "127.0.0.1".parse().unwrap(),
+            port: 9080,
+            viewer_port: 9090,
+            grpc_port: 9876,
+        };
+        assert_eq!(options.control_url(), "http://127.0.0.1:9080/");
+        assert_eq!(
+            options.viewer_url(),
+            "http://127.0.0.1:9090/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A9876%2Fproxy"
+        );
+        assert!(options.ssh_tunnel().contains("-L 9876:127.0.0.1:9876"));
+        let same = WebOptions {
+            grpc_port: 9080,
+            ..options
+        };
+        assert!(matches!(
+            same.check_ports(),
+            Err(WebError::SamePort { port: 9080 })
+        ));
+    }
+
+    #[test]
+    fn requests_parse_with_defaults_and_refuse_unknown_fields() {
+        let step: WebRequest = serde_json::from_str(r#"{"command":"step"}"#).unwrap();
+        assert_eq!(step, WebRequest::Step { count: 1 });
+        assert!(serde_json::from_str::<WebRequest>(r#"{"command":"pause","x":1}"#).is_err());
+        assert!(serde_json::from_str::<WebRequest>(r#"{"command":"explode"}"#).is_err());
+    }
+}

@@ -1,0 +1,624 @@
+//! `gaitscope live --web` in a real browser: Debian's headless Chromium driven through
+//! chromedriver (WebDriver), against the binary serving the bundled LSTM checkpoint.
+//! Needs `chromium` and `chromium-driver` (scripts/setup.sh --test installs them).
+#![cfg(feature = "web")]
+
+use fantoccini::{Client, ClientBuilder, Locator};
+use re_chunk::Chunk;
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::net::TcpListener;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+mod common;
+
+const WAIT: Duration = Duration::from_secs(60);
+
+fn free_ports<const N: usize>() -> [u16; N] {
+    // Held together so that they differ, released before the servers bind them.
+    let listeners: Vec<TcpListener> = (0..N)
+        .map(|_| TcpListener::bind("127.0.0.1:0").unwrap())
+        .collect();
+    std::array::from_fn(|i| listeners[i].local_addr().unwrap().port())
+}
+
+fn wait_for_port(port: u16, child: &mut Child) {
+    let deadline = Instant::now() + WAIT;
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!("exited before listening on {port}: {status}");
+        }
+        assert!(Instant::now() < deadline, "nothing listens on {port}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// Kills the process when the test ends, however it ends.
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// The TCP sockets `pid` listens on, as (address, port), from /proc/net/tcp{,6} and its fds.
+fn listening_sockets(pid: u32) -> Vec<(std::net::IpAddr, u16)> {
+    let Ok(fds) = std::fs::read_dir(format!("/proc/{pid}/fd")) else {
+        return Vec::new();
+    };
+    let inodes: Vec<String> = fds
+        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+        .filter_map(|l| {
+            let l = l.to_string_lossy().into_owned();
+            Some(l.strip_prefix("socket:[")?.strip_suffix(']')?.to_string())
+        })
+        .collect();
+    let mut out = Vec::new();
+    for (file, v6) in [("/proc/net/tcp", false), ("/proc/net/tcp6", true)] {
+        let Ok(text) = std::fs::read_to_string(file) else {
+            continue;
+        };
+        for line in text.lines().skip(1) {
+            let f: Vec<&str> = line.split_whitespace().collect();
+            // local_address, st (0A = LISTEN), inode
+            if f.len() < 10 || f[3] != "0A" || !inodes.iter().any(|i| i == f[9]) {
+                continue;
+            }
+            let (addr, port) = f[1].split_once(':').unwrap();
+            let port = u16::from_str_radix(port, 16).unwrap();
+            let ip = if v6 {
+                // Four little-endian 32-bit words.
+                let mut bytes = [0u8; 16];
+                for w in 0..4 {
+                    let word = u32::from_str_radix(&addr[8 * w..8 * w + 8], 16).unwrap();
+                    bytes[4 * w..4 * w + 4].copy_from_slice(&word.to_le_bytes());
+                }
+                std::net::IpAddr::from(bytes)
+            } else {
+                std::net::IpAddr::from(u32::from_str_radix(addr, 16).unwrap().to_le_bytes())
+            };
+            out.push((ip, port));
+        }
+    }
+    out
+}
+
+/// Processes whose parent chain reaches `ancestor`, running `exe`.
+fn descendants_running(ancestor: u32, exe: &Path) -> Vec<u32> {
+    let parent = |pid: u32| -> Option<u32> {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+        // "pid (comm) state ppid …": comm may hold spaces, so split after its ')'.
+        stat.rsplit_once(')')?
+            .1
+            .split_whitespace()
+            .nth(1)?
+            .parse()
+            .ok()
+    };
+    let exe = exe.canonicalize().unwrap();
+    std::fs::read_dir("/proc")
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|&pid| std::fs::read_link(format!("/proc/{pid}/exe")).is_ok_and(|p| p == exe))
+        .filter(|&pid| {
+            let mut p = pid;
+            while let Some(up) = parent(p) {
+                if up == ancestor {
+                    return true;
+                }
+                if up <= 1 {
+                    break;
+                }
+                p = up;
+            }
+            false
+        })
+        .collect()
+}
+
+/// The process that listens on `port` (any address), if one does.
+fn listener_of(port: u16) -> Option<u32> {
+    let pids: Vec<u32> = std::fs::read_dir("/proc")
+        .ok()?
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .collect();
+    pids.into_iter()
+        .find(|&pid| listening_sockets(pid).iter().any(|(_, p)| *p == port))
+}
+
+fn chromedriver() -> (Killed, u16) {
+    let [port] = free_ports::<1>();
+    let mut child = Command::new("chromedriver")
+        .arg(format!("--port={port}"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("chromedriver (Debian's chromium-driver: scripts/setup.sh --test installs it)");
+    wait_for_port(port, &mut child);
+    (Killed(child), port)
+}
+
+async fn browser(port: u16) -> Client {
+    let profile = tempfile::tempdir().unwrap().keep();
+    let mut caps = serde_json::Map::new();
+    caps.insert(
+        "goog:chromeOptions".into(),
+        json!({
+            "binary": "/usr/bin/chromium",
+            "args": [
+                "--headless=new", "--no-sandbox", "--no-first-run", "--disable-quic",
+                "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                "--disable-dev-shm-usage", "--window-size=1400,1000",
+                // WebGL on the CPU (SwiftShader), for Rerun's viewer on a machine with no GPU.
+                "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                format!("--user-data-dir={}", profile.display()),
+            ],
+        }),
+    );
+    ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+        .capabilities(caps)
+        .connect(&format!("http://127.0.0.1:{port}"))
+        .await
+        .expect("a chromium session through chromedriver")
+}
+
+/// The page's own view of the sim: GET /state from inside the page.
+async fn state(client: &Client) -> Value {
+    client
+        .execute_async(
+            "const done = arguments[0]; fetch('/state').then(r => r.json()).then(done);",
+            vec![],
+        )
+        .await
+        .unwrap()
+}
+
+async fn wait_state(client: &Client, what: &str, ready: impl Fn(&Value) -> bool) -> Value {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let s = state(client).await;
+        if ready(&s) {
+            return s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "timed out waiting for {what}: {s}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+fn lane_step(s: &Value) -> u64 {
+    s["lanes"][0]["step"].as_u64().unwrap()
+}
+
+fn joint<'a>(s: &'a Value, name: &str) -> &'a Value {
+    s["lanes"][0]["joints"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|j| j["name"] == name)
+        .unwrap()
+}
+
+/// Sends a raw body from the page, as a buggy or hostile page would, and returns the reply.
+async fn send_raw(client: &Client, body: &str) -> Value {
+    client
+        .execute_async(
+            "const done = arguments[1]; window.gaitscopeSend(arguments[0]).then(done);",
+            vec![json!(body)],
+        )
+        .await
+        .unwrap()
+}
+
+fn series(chunks: &[Chunk], entity: &str) -> BTreeMap<i64, [f64; 8]> {
+    let scalars = rerun::Scalars::descriptor_scalars().component;
+    common::per_step(chunks, entity, |c| {
+        c.iter_slices::<f64>(scalars)
+            .map(|s| <[f64; 8]>::try_from(s).expect("8 joints per row"))
+            .collect()
+    })
+    .into_iter()
+    .collect()
+}
+
+fn read_rrd(path: &Path) -> Vec<Chunk> {
+    let file = std::io::BufReader::new(std::fs::File::open(path).unwrap());
+    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
+        .map_while(Result::ok)
+        .collect();
+    common::recording_chunks(msgs)
+}
+
+/// PNG → (width, height, variance of the grey level): a blank page has none.
+fn png_variance(png: &[u8]) -> (u32, u32, f64) {
+    let decoder = png::Decoder::new(std::io::Cursor::new(png));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    let channels = info.color_type.samples();
+    let grey: Vec<f64> = buf[..info.buffer_size()]
+        .chunks(channels)
+        .map(|p| p[..3].iter().map(|&c| f64::from(c)).sum::<f64>() / 3.0)
+        .collect();
+    let mean = grey.iter().sum::<f64>() / grey.len() as f64;
+    let var = grey.iter().map(|g| (g - mean).powi(2)).sum::<f64>() / grey.len() as f64;
+    (info.width, info.height, var)
+}
+
+#[test]
+fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    let save = dir.path().join("session.rrd");
+    let [port, viewer_port, grpc_port] = free_ports::<3>();
+    let child = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["live", "--web", "--checkpoint", "checkpoints/encoder-lstm"])
+        .args(["--condition", "manual", "--paused", "--exit-after", "300"])
+        .args(["--port", &port.to_string()])
+        .args(["--viewer-port", &viewer_port.to_string()])
+        .args(["--grpc-port", &grpc_port.to_string()])
+        .arg("--save")
+        .arg(&save)
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut live = Killed(child);
+    wait_for_port(port, &mut live.0);
+
+    // Every socket it listens on is a loopback one, and it serves all three of ours.
+    let sockets = listening_sockets(live.0.id());
+    assert!(
+        sockets.iter().all(|(ip, _)| ip.is_loopback()),
+        "{sockets:?}"
+    );
+    for p in [port, viewer_port, grpc_port] {
+        assert!(sockets.iter().any(|(_, q)| *q == p), "{p} in {sockets:?}");
+    }
+
+    let (_driver, driver_port) = chromedriver();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let client = browser(driver_port).await;
+        client
+            .goto(&format!("http://127.0.0.1:{port}/"))
+            .await
+            .unwrap();
+        // The joint rows appear with the first server-sent snapshot.
+        let fail = client
+            .wait()
+            .at_most(WAIT)
+            .for_element(Locator::Id("fail-ankle_3"))
+            .await
+            .unwrap();
+        let s = state(&client).await;
+        assert_eq!(s["paused"], true);
+        assert_eq!(lane_step(&s), 0);
+
+        // Pause is on: "Step" with 5 advances exactly 5 env steps.
+        let count = client.find(Locator::Id("step-count")).await.unwrap();
+        count.clear().await.unwrap();
+        count.send_keys("5").await.unwrap();
+        client.find(Locator::Id("step")).await.unwrap().click().await.unwrap();
+        wait_state(&client, "5 steps", |s| lane_step(s) >= 5).await;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        assert_eq!(lane_step(&state(&client).await), 5, "exactly 5, then paused");
+
+        // "fail" on ankle_3: the joint is failed before the next step (manual → severe 0.1).
+        fail.click().await.unwrap();
+        let s = wait_state(&client, "ankle_3 failed", |s| {
+            joint(s, "ankle_3")["state"] == "triggered"
+        })
+        .await;
+        assert_eq!(joint(&s, "ankle_3")["scale"], 0.1);
+        assert_eq!(lane_step(&s), 5, "applied while paused, before step 6");
+        let latency = client
+            .find(Locator::Id("latency"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert!(latency.ends_with("(step 5)"), "{latency}");
+        eprintln!("click → applied, seen by the page: {latency}");
+        count.clear().await.unwrap();
+        count.send_keys("1").await.unwrap();
+        client.find(Locator::Id("step")).await.unwrap().click().await.unwrap();
+        let s = wait_state(&client, "step 6", |s| lane_step(s) == 6).await;
+        let ankle = joint(&s, "ankle_3");
+        assert_eq!(
+            ankle["applied"].as_f64().unwrap(),
+            0.1 * ankle["commanded"].as_f64().unwrap()
+        );
+
+        // Bad requests: refused with their reason, shown on the page, nothing changes.
+        let handled = s["commands_handled"].as_u64().unwrap();
+        for (body, reason) in [
+            ("{not json", "malformed request"),
+            (r#"{"command":"edit","edit":"fail:ankle_9"}"#, "unknown joint 'ankle_9'"),
+            (r#"{"command":"edit","edit":"scale:ankle_3=1.5"}"#, "[0, 1]"),
+            (r#"{"command":"speed","value":100}"#, "speed must be between"),
+            (r#"{"command":"self_destruct"}"#, "malformed request"),
+        ] {
+            let reply = send_raw(&client, body).await;
+            let error = reply["error"].as_str().unwrap_or_default();
+            assert!(error.contains(reason), "{body}: {reply}");
+            let shown = client.find(Locator::Id("error")).await.unwrap().text().await.unwrap();
+            assert!(shown.contains(reason), "{shown}");
+        }
+        let s = state(&client).await;
+        assert_eq!(s["commands_handled"].as_u64().unwrap(), handled);
+        assert_eq!(lane_step(&s), 6);
+        assert_eq!(joint(&s, "ankle_3")["scale"], 0.1);
+
+        // The Rerun web viewer loads in the same browser and draws the stream.
+        client.new_window(true).await.unwrap();
+        let handles = client.windows().await.unwrap();
+        client.switch_to_window(handles[1].clone()).await.unwrap();
+        let viewer_url = s["session"]["viewer_url"].as_str().unwrap().to_string();
+        client.goto(&viewer_url).await.unwrap();
+        client
+            .wait()
+            .at_most(WAIT)
+            .for_element(Locator::Css("canvas"))
+            .await
+            .unwrap();
+        // Frames the browser paints per second while the viewer runs (requestAnimationFrame).
+        let fps = client
+            .execute_async(
+                "const done = arguments[0]; let n = 0; const t0 = performance.now();
+                 function tick() { n++; if (performance.now() - t0 < 3000) requestAnimationFrame(tick);
+                 else done(1000 * n / (performance.now() - t0)); }
+                 requestAnimationFrame(tick);",
+                vec![],
+            )
+            .await
+            .unwrap();
+        eprintln!("web viewer tab: {fps} frames/s (requestAnimationFrame, headless SwiftShader)");
+        tokio::time::sleep(Duration::from_secs(10)).await;
+        let shot = client.screenshot().await.unwrap();
+        let (w, h, var) = png_variance(&shot);
+        let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("web-viewer.png");
+        std::fs::write(&out, &shot).unwrap();
+        eprintln!("viewer screenshot {w}×{h}, grey variance {var:.0}: {}", out.display());
+        assert!(var > 100.0, "the viewer tab is blank (variance {var})");
+        client.switch_to_window(handles[0].clone()).await.unwrap();
+        let shot = client.screenshot().await.unwrap();
+        std::fs::write(Path::new(env!("CARGO_TARGET_TMPDIR")).join("web-control.png"), &shot)
+            .unwrap();
+
+        // Quit from the page ends the process, and the saved stream holds what the page did.
+        client.find(Locator::Id("quit")).await.unwrap().click().await.unwrap();
+        client.close().await.unwrap();
+    });
+    let deadline = Instant::now() + WAIT;
+    let status = loop {
+        if let Some(status) = live.0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "live --web did not quit");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(live.0.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+    assert!(status.success(), "{stderr}");
+    assert!(stderr.contains("control page:"), "{stderr}");
+    let chunks = read_rrd(&save);
+    let commanded = series(&chunks, "/ant/actions/commanded");
+    let applied = series(&chunks, "/ant/actions/applied");
+    assert_eq!(applied.len(), 6, "6 env steps reached the file");
+    // Env step t is recorded at global step t + 1; ankle_3 is actuator 7 in Ant-v4's order.
+    let a = 7;
+    for t in 0..6i64 {
+        let scale = if t == 5 { 0.1 } else { 1.0 };
+        assert_eq!(
+            applied[&(t + 1)][a],
+            scale * commanded[&(t + 1)][a],
+            "env step {t}"
+        );
+    }
+    let events = common::text_log(&chunks, "/ant/events");
+    assert_eq!(
+        events,
+        vec![(
+            6,
+            "step 5: ankle_3 override FailNow; scale → 0.1".to_string()
+        )]
+    );
+}
+
+#[test]
+fn bad_web_flags_are_refused_before_anything_listens() {
+    let [port] = free_ports::<1>();
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .args(["live", "--web", "--exit-after", "5"])
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let taken = TcpListener::bind(("127.0.0.1", port)).unwrap();
+    let out = run(&["--port", &port.to_string()]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("cannot listen for the control page"),
+        "{stderr}"
+    );
+    drop(taken);
+    let out = run(&["--port", "9999", "--viewer-port", "9999"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("given twice"));
+    let out = run(&["--bind", "not-an-address"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--bind"));
+}
+
+#[test]
+fn native_live_and_the_viewer_it_spawns_listen_only_on_loopback() {
+    // `live` as a person runs it: a display (a private Xvfb screen), the stock Rerun viewer it
+    // spawns (Vulkan on the CPU), the egui panel.
+    let runtime = tempfile::tempdir().unwrap();
+    let bin = Path::new(env!("CARGO_BIN_EXE_gaitscope"));
+    let child = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1920x1080x24"])
+        .arg(bin)
+        .args([
+            "live",
+            "--checkpoint",
+            "checkpoints/encoder-lstm",
+            "--exit-after",
+            "40",
+        ])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("WGPU_BACKEND", "vulkan")
+        .env("XDG_RUNTIME_DIR", runtime.path())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("xvfb-run (Debian's xvfb: scripts/setup.sh --test installs it)");
+    let mut live = Killed(child);
+    // "streaming to the Rerun viewer (PATH) at rerun+http://127.0.0.1:PORT/proxy"
+    let stderr = live.0.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        use std::io::BufRead;
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = tx.send(line);
+        }
+    });
+    let deadline = Instant::now() + WAIT;
+    let mut said = Vec::new();
+    let port: u16 = loop {
+        let line = rx
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+            .unwrap_or_else(|_| panic!("live never said where it streams: {said:?}"));
+        if let Some(rest) = line.split("rerun+http://127.0.0.1:").nth(1) {
+            break rest.split('/').next().unwrap().parse().unwrap();
+        }
+        said.push(line);
+    };
+    let viewer = loop {
+        if let Some(pid) = listener_of(port) {
+            break pid;
+        }
+        assert!(Instant::now() < deadline, "no viewer listens on {port}");
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    // Let the session run a few seconds (the panel up, the stream flowing) before looking.
+    std::thread::sleep(Duration::from_secs(5));
+    let ours = descendants_running(live.0.id(), bin);
+    assert_eq!(ours.len(), 1, "one gaitscope under xvfb-run: {ours:?}");
+    let mut sockets = listening_sockets(ours[0]);
+    let viewer_sockets = listening_sockets(viewer);
+    // Neither outlives the test (the viewer would outlive `live` by design).
+    let _ = Command::new("kill")
+        .args([viewer.to_string(), ours[0].to_string()])
+        .status();
+    assert!(
+        viewer_sockets.iter().any(|(_, p)| *p == port),
+        "{viewer_sockets:?}"
+    );
+    sockets.extend(viewer_sockets);
+    assert!(
+        sockets.iter().all(|(ip, _)| ip.is_loopback()),
+        "every listening socket of live and its viewer is loopback: {sockets:?}"
+    );
+}
+
+/// The docs' pictures and numbers, of a running two-model session (not a check: run with
+/// `cargo test --release --test web -- --ignored`, then look at docs/web-*.png).
+#[test]
+#[ignore]
+fn docs_pictures_and_latency_of_a_running_session() {
+    let [port, viewer_port, grpc_port] = free_ports::<3>();
+    let child = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["live", "--web", "--checkpoint", "checkpoints/encoder-lstm"])
+        .args(["--compare", "checkpoints/baseline", "--condition", "severe"])
+        .args(["--exit-after", "300", "--port", &port.to_string()])
+        .args(["--viewer-port", &viewer_port.to_string()])
+        .args(["--grpc-port", &grpc_port.to_string()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut live = Killed(child);
+    wait_for_port(port, &mut live.0);
+    let (_driver, driver_port) = chromedriver();
+    let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs");
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let client = browser(driver_port).await;
+        client.goto(&format!("http://127.0.0.1:{port}/")).await.unwrap();
+        client
+            .wait()
+            .at_most(WAIT)
+            .for_element(Locator::Id("fail-hip_1"))
+            .await
+            .unwrap();
+        // Click → the page sees the applied state, on a sim running at 1×, five times.
+        let mut latencies = Vec::new();
+        for joint in ["hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3"] {
+            tokio::time::sleep(Duration::from_secs(2)).await;
+            let t0 = Instant::now();
+            client
+                .find(Locator::Id(&format!("fail-{joint}")))
+                .await
+                .unwrap()
+                .click()
+                .await
+                .unwrap();
+            let text = loop {
+                let t = client.find(Locator::Id("latency")).await.unwrap().text().await.unwrap();
+                if t != "–" && !latencies.iter().any(|(_, l)| *l == t) {
+                    break t;
+                }
+                assert!(t0.elapsed() < Duration::from_secs(20), "no latency shown after {joint}: {t}");
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            };
+            latencies.push((t0.elapsed().as_millis(), text));
+        }
+        eprintln!("click → applied, as the page shows it (and the driver's round trip): {latencies:?}");
+        let s = state(&client).await;
+        let url = s["session"]["viewer_url"].as_str().unwrap().to_string();
+        client.new_window(true).await.unwrap();
+        let handles = client.windows().await.unwrap();
+        client.switch_to_window(handles[1].clone()).await.unwrap();
+        client.goto(&url).await.unwrap();
+        tokio::time::sleep(Duration::from_secs(20)).await;
+        let fps = client
+            .execute_async(
+                "const done = arguments[0]; let n = 0; const t0 = performance.now();
+                 function tick() { n++; if (performance.now() - t0 < 5000) requestAnimationFrame(tick);
+                 else done(1000 * n / (performance.now() - t0)); }
+                 requestAnimationFrame(tick);",
+                vec![],
+            )
+            .await
+            .unwrap();
+        eprintln!("web viewer tab: {fps} frames/s");
+        std::fs::write(docs.join("web-viewer.png"), client.screenshot().await.unwrap()).unwrap();
+        client.switch_to_window(handles[0].clone()).await.unwrap();
+        std::fs::write(docs.join("web-control.png"), client.screenshot().await.unwrap()).unwrap();
+        let s = state(&client).await;
+        eprintln!("sim: {} of {} steps/s", s["steps_per_s"], s["target_steps_per_s"]);
+        client.close().await.unwrap();
+    });
+}
