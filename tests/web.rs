@@ -323,14 +323,22 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         .await;
         assert_eq!(joint(&s, "ankle_3")["scale"], 0.1);
         assert_eq!(lane_step(&s), 5, "applied while paused, before step 6");
-        let latency = client
-            .find(Locator::Id("latency"))
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
-        assert!(latency.ends_with("(step 5)"), "{latency}");
+        // The page's own readout of the click (its next event may trail our /state read).
+        let deadline = Instant::now() + WAIT;
+        let latency = loop {
+            let text = client
+                .find(Locator::Id("latency"))
+                .await
+                .unwrap()
+                .text()
+                .await
+                .unwrap();
+            if text.ends_with("(step 5)") {
+                break text;
+            }
+            assert!(Instant::now() < deadline, "latency readout: {text}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
         eprintln!("click → applied, seen by the page: {latency}");
         count.clear().await.unwrap();
         count.send_keys("1").await.unwrap();

@@ -765,7 +765,8 @@ mod tests {
     fn requests_parse_with_defaults_and_refuse_unknown_fields() {
         let step: WebRequest = serde_json::from_str(r#"{"command":"step"}"#).unwrap();
         assert_eq!(step, WebRequest::Step { count: 1 });
-        assert!(serde_json::from_str::<WebRequest>(r#"{"command":"pause","x":1}"#).is_err());
+        // A misspelt field is an error, not a silent default.
+        assert!(serde_json::from_str::<WebRequest>(r#"{"command":"step","cout":5}"#).is_err());
         assert!(serde_json::from_str::<WebRequest>(r#"{"command":"explode"}"#).is_err());
     }
 }
