@@ -1,7 +1,7 @@
 # The two commands of the README are `make run` and `make test`; both set up first.
 CARGO ?= cargo
 
-.PHONY: setup run test bench viewer
+.PHONY: setup run test bench viewer sweep
 setup:
 	@./scripts/setup.sh
 
@@ -21,3 +21,10 @@ bench: setup
 # The stock Rerun 0.36.3 viewer binary (from PyPI's rerun-sdk wheel), for `rerun FILE.rrd`.
 viewer:
 	@./scripts/setup.sh --viewer
+
+# A sweep on Ray Tune (its own venv in .deps/sweep-venv): make sweep SPEC=sweeps/seeds.toml
+# [STORAGE=DIR] [ADDRESS=auto] [RESUME=1]; exits 0 only when every trial finished (docs/sweeps.md).
+sweep: setup
+	@test -n "$(SPEC)" || { echo "usage: make sweep SPEC=sweeps/FILE.toml [STORAGE=DIR] [ADDRESS=auto] [RESUME=1]"; exit 2; }
+	$(CARGO) build --release
+	$$(./sweeps/venv.sh) sweeps/sweep.py $(SPEC) $(if $(STORAGE),--storage $(STORAGE)) $(if $(ADDRESS),--address $(ADDRESS)) $(if $(RESUME),--resume) --gaitscope $${CARGO_TARGET_DIR:-target}/release/gaitscope

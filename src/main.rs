@@ -129,6 +129,10 @@ struct RolloutArgs {
 
 #[derive(Args)]
 struct TrainArgs {
+    /// Check the options and config (the env is built once), print the resolved config as
+    /// JSON and exit: nothing is trained or written (sweep launchers vet specs with it).
+    #[arg(long)]
+    check: bool,
     /// Feature extractor: none (baseline), lstm (the paper's, default), mlp-window (ablation).
     /// With --resume it must match the run's, and may be left out.
     #[arg(long, value_enum)]
@@ -770,6 +774,14 @@ fn train_command(args: TrainArgs) -> Result<()> {
         Some(n) => n,
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };
+    if args.check {
+        if resume {
+            bail!("--check is for a fresh run (a resumed run keeps its own options)");
+        }
+        train::check_ant(&opts)?;
+        println!("{}", serde_json::to_string(&opts.env)?);
+        return Ok(());
+    }
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
     ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))

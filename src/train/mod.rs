@@ -180,6 +180,13 @@ pub fn train_ant(
     train(&mut AntTask(env), opts, resume, stop)
 }
 
+/// What a fresh `train_ant` would refuse, found without training or writing anything (the env
+/// is built once, so a bad model path or config fails here too).
+pub fn check_ant(opts: &TrainOptions) -> Result<(), TrainError> {
+    let env = AntEnv::new(opts.env.clone(), opts.seed)?;
+    validate_fresh(opts, &AntTask(env))
+}
+
 /// The training loop, for any [`Task`].
 pub fn train(
     task: &mut impl Task,

@@ -1,0 +1,318 @@
+#!/usr/bin/env python3
+"""Runs a gaitscope sweep on Ray Tune: every trial is `gaitscope train` in a subprocess.
+
+    sweeps/sweep.py SPEC.toml [--storage DIR] [--address ADDR] [--resume] [--gaitscope BIN]
+
+A spec (TOML) names the trial set and the training flags; see docs/sweeps.md. Before anything
+starts, every trial's options are checked by `gaitscope train --check`, so a bad key or value
+is refused with gaitscope's own reason. Each trial follows its run's metrics.jsonl and reports
+to Tune; every gaitscope checkpoint save becomes a Tune checkpoint (a pointer to the run
+folder: the run itself, replay buffer included, stays where gaitscope wrote it). A retried
+trial (FailureConfig) resumes its run with `gaitscope train --resume`. The end writes
+STORAGE/summary.json and runs `gaitscope eval` on the final checkpoints, grouped by model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import itertools
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+# Spec keys that are not `gaitscope train` flags.
+SPEC_KEYS = {"name", "steps", "grid", "scheduler", "cpus_per_trial", "max_failures", "eval_episodes"}
+# Train flags a spec may not set: the launcher owns them.
+OWNED_FLAGS = {"out", "resume", "steps", "config", "quiet", "check", "encoder", "seed"}
+MODEL_NAMES = {"none": "baseline", "lstm": "encoder-lstm", "mlp-window": "encoder-mlp"}
+# How many of the latest episodes the reported success rate and return average over.
+RECENT_EPISODES = 20
+
+
+class SpecError(Exception):
+    pass
+
+
+def train_flags(gaitscope: str) -> dict[str, bool]:
+    """The long flags `gaitscope train` takes (name → takes a value), read from its --help."""
+    text = subprocess.run([gaitscope, "train", "--help"], capture_output=True, text=True, check=True).stdout
+    flags = {}
+    for m in re.finditer(r"^\s+(?:-\w, )?--([a-z0-9-]+)( <[A-Z_|]+>)?", text, re.M):
+        flags[m.group(1)] = bool(m.group(2))
+    return flags
+
+
+def load_spec(path: Path, gaitscope: str) -> dict:
+    try:
+        spec = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise SpecError(f"{path}: {e}") from None
+    flags = train_flags(gaitscope)
+    for key in spec:
+        flag = key.replace("_", "-")
+        if key in SPEC_KEYS:
+            continue
+        if flag in OWNED_FLAGS:
+            raise SpecError(f"{path}: '{key}' is set by the launcher (use [grid] for encoder and seed)")
+        if flag not in flags:
+            known = ", ".join(sorted(k.replace("-", "_") for k in flags if k not in OWNED_FLAGS and k != "help"))
+            raise SpecError(f"{path}: unknown key '{key}' (spec keys: {', '.join(sorted(SPEC_KEYS))}; train flags: {known})")
+    for required in ("name", "steps", "grid"):
+        if required not in spec:
+            raise SpecError(f"{path}: missing '{required}'")
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", str(spec["name"])):
+        raise SpecError(f"{path}: name '{spec['name']}' must be letters, digits, '.', '_' or '-'")
+    if not isinstance(spec["steps"], int) or spec["steps"] < 1:
+        raise SpecError(f"{path}: steps must be a positive integer, got {spec['steps']!r}")
+    grid = spec["grid"]
+    if not isinstance(grid, dict) or not grid:
+        raise SpecError(f"{path}: [grid] must list at least one key")
+    for key, values in grid.items():
+        if not isinstance(values, list) or not values:
+            raise SpecError(f"{path}: grid key '{key}' needs a non-empty list of values")
+    for encoder in grid.get("encoder", ["lstm"]):
+        if encoder not in MODEL_NAMES:
+            raise SpecError(f"{path}: no encoder '{encoder}' (gaitscope has {', '.join(MODEL_NAMES)})")
+    spec["_flags"] = flags
+    return spec
+
+
+def trials(spec: dict) -> list[dict]:
+    """The cross product of the grid: one dict of grid values per trial."""
+    keys = list(spec["grid"])
+    return [dict(zip(keys, values)) for values in itertools.product(*(spec["grid"][k] for k in keys))]
+
+
+def nested_config(point: dict) -> dict:
+    """Dotted grid keys (`damage.threshold`) as the nested JSON `gaitscope train --config` reads."""
+    config: dict = {}
+    for key, value in point.items():
+        if key in ("encoder", "seed"):
+            continue
+        parts = key.split(".")
+        node = config
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return config
+
+
+def run_name(point: dict) -> tuple[str, str]:
+    """(group, folder): runs that differ only in seed share a group; the folder names the model
+    and seed the way `gaitscope eval` groups them (encoder-lstm-s1)."""
+    rest = {k: v for k, v in sorted(point.items()) if k not in ("encoder", "seed")}
+    group = "-".join(f"{k.split('.')[-1]}{v}" for k, v in rest.items()) or "default"
+    model = MODEL_NAMES[point.get("encoder", "lstm")]
+    return group, f"{model}-s{point.get('seed', 0)}"
+
+
+def train_command(gaitscope: str, spec: dict, point: dict, config_file: Path) -> list[str]:
+    cmd = [gaitscope, "train", "--quiet", "--steps", str(spec["steps"]), "--config", str(config_file),
+           "--encoder", str(point.get("encoder", "lstm")), "--seed", str(point.get("seed", 0))]
+    # One update thread per CPU the trial is given (gaitscope would otherwise use every core).
+    if "threads" not in spec:
+        cmd += ["--threads", str(spec.get("cpus_per_trial", 1))]
+    for key, value in spec.items():
+        if key in SPEC_KEYS or key.startswith("_"):
+            continue
+        flag = key.replace("_", "-")
+        if spec["_flags"][flag]:
+            cmd += [f"--{flag}", str(value)]
+        elif value is True:
+            cmd.append(f"--{flag}")
+    return cmd
+
+
+def check_trials(gaitscope: str, spec: dict) -> None:
+    """Every trial's options through `gaitscope train --check`: gaitscope's own reasons."""
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, point in enumerate(trials(spec)):
+            config_file = Path(tmp) / f"config-{i}.json"
+            config_file.write_text(json.dumps(nested_config(point)))
+            cmd = train_command(gaitscope, spec, point, config_file) + ["--check", "--out", str(Path(tmp) / f"run-{i}")]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                reason = done.stderr.strip().removeprefix("error: ")
+                raise SpecError(f"trial {point}: {reason}")
+
+
+def follow(run: Path, process: subprocess.Popen, report) -> None:
+    """Reads metrics.jsonl as it grows; reports every log line with the latest episode stats,
+    and a Tune checkpoint whenever gaitscope saved one."""
+    from ray import tune
+
+    metrics = run / "metrics.jsonl"
+    offset = 0
+    lines: list[str] = []
+    episodes: list[tuple[float, bool]] = []
+    latest: dict = {}
+    saved_step = None
+    while True:
+        exited = process.poll() is not None
+        lines = []
+        if metrics.exists():
+            with metrics.open() as f:
+                f.seek(offset)
+                lines = f.readlines()
+                # A line still being written waits for the next pass.
+                if lines and not lines[-1].endswith("\n"):
+                    lines.pop()
+                offset += sum(len(line.encode()) for line in lines)
+            for line in lines:
+                row = json.loads(line)
+                if "charts/episodic_return" in row:
+                    episodes.append((row["charts/episodic_return"], bool(row.get("charts/success"))))
+                    del episodes[:-RECENT_EPISODES]
+                latest.update({k: v for k, v in row.items() if isinstance(v, (int, float))})
+        meta = run / "checkpoint.json"
+        step = None
+        if meta.exists():
+            try:
+                step = json.loads(meta.read_text())["steps_done"]
+            except (json.JSONDecodeError, KeyError, OSError):
+                step = None  # mid-rename: next pass
+        saved = step is not None and step != saved_step
+        if lines or saved:
+            result = {
+                "steps_done": step if step is not None else 0,
+                "global_step": latest.get("global_step", 0),
+                "steps_per_s": latest.get("charts/SPS", 0.0),
+                "episodes": len(episodes),
+            }
+            if episodes:
+                result["episodic_return"] = sum(r for r, _ in episodes) / len(episodes)
+                result["success_rate"] = sum(s for _, s in episodes) / len(episodes)
+            if saved:
+                saved_step = step
+                with tempfile.TemporaryDirectory() as tmp:
+                    (Path(tmp) / "run.json").write_text(json.dumps({"run": str(run), "steps_done": step}))
+                    report(result, checkpoint=tune.Checkpoint.from_directory(tmp))
+            else:
+                report(result)
+        if exited:
+            return
+        time.sleep(1.0)
+
+
+def make_trainable(gaitscope: str, spec: dict, runs: Path):
+    def trainable(point: dict) -> None:
+        from ray import tune
+
+        group, folder = run_name(point)
+        run = runs / group / folder
+        run.parent.mkdir(parents=True, exist_ok=True)
+        config_file = run.parent / f"{folder}.config.json"
+        config_file.write_text(json.dumps(nested_config(point)))
+        cmd = train_command(gaitscope, spec, point, config_file)
+        # A retried trial (or one restored with the sweep) continues its run, not from step 0.
+        if (run / "checkpoint.json").exists():
+            cmd += ["--resume", str(run)]
+        else:
+            cmd += ["--out", str(run)]
+        log = open(run.parent / f"{folder}.log", "a")
+        process = subprocess.Popen(cmd, stdout=log, stderr=log)
+        try:
+            follow(run, process, tune.report)
+        finally:
+            if process.poll() is None:
+                process.kill()
+            process.wait()
+            log.close()
+        if process.returncode != 0:
+            raise RuntimeError(f"gaitscope train exited with {process.returncode} (log: {log.name})")
+        return None
+
+    return trainable
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("spec", type=Path)
+    parser.add_argument("--storage", type=Path, help="default: runs/sweeps/NAME")
+    parser.add_argument("--address", help="a running Ray cluster (e.g. auto); default: a local one")
+    parser.add_argument("--resume", action="store_true", help="continue an interrupted sweep in STORAGE")
+    parser.add_argument("--gaitscope", default=str(ROOT / "target/release/gaitscope"))
+    args = parser.parse_args()
+    gaitscope = str(Path(args.gaitscope).resolve())
+    try:
+        spec = load_spec(args.spec, gaitscope)
+        check_trials(gaitscope, spec)
+    except SpecError as e:
+        print(f"sweep: refused: {e}", file=sys.stderr)
+        return 2
+
+    import ray
+    from ray import tune
+
+    storage = (args.storage or ROOT / "runs/sweeps" / spec["name"]).resolve()
+    runs = storage / "runs"
+    storage.mkdir(parents=True, exist_ok=True)
+    ray.init(address=args.address, include_dashboard=False, log_to_driver=False)
+    trainable = tune.with_resources(make_trainable(gaitscope, spec, runs), {"cpu": spec.get("cpus_per_trial", 1)})
+    experiment = storage / "tune"
+    if args.resume and tune.Tuner.can_restore(str(experiment)):
+        tuner = tune.Tuner.restore(str(experiment), trainable, resume_errored=True)
+    else:
+        scheduler = None
+        if "scheduler" in spec:
+            s = spec["scheduler"]
+            scheduler = tune.schedulers.ASHAScheduler(
+                time_attr="global_step", metric=s.get("metric", "success_rate"), mode=s.get("mode", "max"),
+                grace_period=s.get("grace_period", spec["steps"] // 10), max_t=spec["steps"])
+        param_space = {k: tune.grid_search(v) for k, v in spec["grid"].items()}
+        tuner = tune.Tuner(
+            trainable,
+            param_space=param_space,
+            tune_config=tune.TuneConfig(scheduler=scheduler),
+            run_config=tune.RunConfig(
+                name="tune",
+                storage_path=str(storage),
+                failure_config=tune.FailureConfig(max_failures=spec.get("max_failures", 3)),
+            ),
+        )
+    results = tuner.fit()
+
+    summary = {"spec": spec["name"], "trials": []}
+    finished = True
+    for result in results:
+        point = result.config
+        group, folder = run_name(point)
+        run = runs / group / folder
+        metrics = result.metrics or {}
+        ok = result.error is None and metrics.get("steps_done") == spec["steps"]
+        finished &= ok
+        summary["trials"].append({
+            "encoder": point.get("encoder", "lstm"),
+            "seed": point.get("seed", 0),
+            "config": point,
+            "steps_done": metrics.get("steps_done", 0),
+            "checkpoint": str(run),
+            "success_rate": metrics.get("success_rate"),
+            "episodic_return": metrics.get("episodic_return"),
+            "finished": ok,
+            "error": None if result.error is None else str(result.error),
+        })
+    (storage / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"sweep: {len(summary['trials'])} trials → {storage / 'summary.json'}")
+
+    # eval_episodes = 0 skips the evaluation.
+    if finished and spec.get("eval_episodes", 200) > 0:
+        groups: dict[str, list[str]] = {}
+        for t in summary["trials"]:
+            groups.setdefault(Path(t["checkpoint"]).parent.name, []).append(t["checkpoint"])
+        for group, dirs in groups.items():
+            subprocess.run([gaitscope, "eval", "--checkpoint", *dirs, "--episodes", str(spec.get("eval_episodes", 200)),
+                            "--out", str(storage / "eval" / group)], check=True)
+    return 0 if finished else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
