@@ -145,3 +145,51 @@ fn bad_train_input_is_a_clear_error() {
         stderr(&out)
     );
 }
+
+#[test]
+fn train_check_vets_options_and_config_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let good = dir.path().join("good.json");
+    std::fs::write(&good, r#"{"damage": {"threshold": 20.0}}"#).unwrap();
+    let done = gaitscope(&[
+        "train",
+        "--check",
+        "--config",
+        good.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(done.status.success(), "{}", stderr(&done));
+    let resolved: Value = serde_json::from_slice(&done.stdout).unwrap();
+    assert_eq!(resolved["damage"]["threshold"], 20.0);
+    assert_eq!(
+        resolved["damage"]["alpha"],
+        gaitscope::GaitConfig::default().damage.alpha
+    );
+    let bad = dir.path().join("bad.json");
+    std::fs::write(&bad, r#"{"damage": {"thresh": 20.0}}"#).unwrap();
+    let done = gaitscope(&[
+        "train",
+        "--check",
+        "--config",
+        bad.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        stderr(&done).contains("unknown field `thresh`"),
+        "{}",
+        stderr(&done)
+    );
+    let done = gaitscope(&[
+        "train",
+        "--check",
+        "--batch-size",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(stderr(&done).contains("batch size"), "{}", stderr(&done));
+    assert!(!out.exists(), "--check writes nothing");
+}
