@@ -11,7 +11,6 @@ use gaitscope::policy::checkpoint::TrainingRecord;
 use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, SacConfig, SacModel};
 use gaitscope::telemetry::{Sink, open};
 use re_chunk::Chunk;
-use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Duration;
 
@@ -85,18 +84,6 @@ fn step_once(sim: &SimHandle) -> Snapshot {
     s
 }
 
-/// Rows of an 8-wide scalar batch per `step`, for one entity.
-fn series(chunks: &[Chunk], entity: &str) -> BTreeMap<i64, [f64; 8]> {
-    let scalars = rerun::Scalars::descriptor_scalars().component;
-    common::per_step(chunks, entity, |c| {
-        c.iter_slices::<f64>(scalars)
-            .map(|s| <[f64; 8]>::try_from(s).expect("8 joints per row"))
-            .collect()
-    })
-    .into_iter()
-    .collect()
-}
-
 #[test]
 fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
     // Manual: fatigue never triggers, so every scale change below is ours.
@@ -149,8 +136,8 @@ fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
     sim.shutdown().unwrap();
 
     let chunks = common::recording_chunks(storage.take());
-    let commanded = series(&chunks, "/ant/actions/commanded");
-    let applied = series(&chunks, "/ant/actions/applied");
+    let commanded = common::joint_series(&chunks, "/ant/actions/commanded");
+    let applied = common::joint_series(&chunks, "/ant/actions/applied");
     assert_eq!(applied.len(), 13, "one row per env step");
     // Env step t is recorded at global step t + 1. Expected scale per (joint, env step):
     let expected = |joint: usize, t: i64| match joint {

@@ -6,7 +6,6 @@
 use fantoccini::{Client, ClientBuilder, Locator};
 use re_chunk::Chunk;
 use serde_json::{Value, json};
-use std::collections::BTreeMap;
 use std::net::TcpListener;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -216,17 +215,6 @@ async fn send_raw(client: &Client, body: &str) -> Value {
         .unwrap()
 }
 
-fn series(chunks: &[Chunk], entity: &str) -> BTreeMap<i64, [f64; 8]> {
-    let scalars = rerun::Scalars::descriptor_scalars().component;
-    common::per_step(chunks, entity, |c| {
-        c.iter_slices::<f64>(scalars)
-            .map(|s| <[f64; 8]>::try_from(s).expect("8 joints per row"))
-            .collect()
-    })
-    .into_iter()
-    .collect()
-}
-
 fn read_rrd(path: &Path) -> Vec<Chunk> {
     let file = std::io::BufReader::new(std::fs::File::open(path).unwrap());
     let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
@@ -423,8 +411,8 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     assert!(status.success(), "{stderr}");
     assert!(stderr.contains("control page:"), "{stderr}");
     let chunks = read_rrd(&save);
-    let commanded = series(&chunks, "/ant/actions/commanded");
-    let applied = series(&chunks, "/ant/actions/applied");
+    let commanded = common::joint_series(&chunks, "/ant/actions/commanded");
+    let applied = common::joint_series(&chunks, "/ant/actions/applied");
     assert_eq!(applied.len(), 6, "6 env steps reached the file");
     // Env step t is recorded at global step t + 1; ankle_3 is actuator 7 in Ant-v4's order.
     let a = 7;

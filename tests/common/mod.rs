@@ -68,3 +68,15 @@ where
         .map(|l| serde_json::from_str(l).map_err(|e| format!("not a JSON line ({e}): {l}")))
         .collect()
 }
+
+/// Rows of an 8-wide scalar batch per `step`, for one entity (actions, fatigue, scales).
+pub fn joint_series(chunks: &[Chunk], entity: &str) -> std::collections::BTreeMap<i64, [f64; 8]> {
+    let scalars = rerun::Scalars::descriptor_scalars().component;
+    per_step(chunks, entity, |c| {
+        c.iter_slices::<f64>(scalars)
+            .map(|s| <[f64; 8]>::try_from(s).expect("8 joints per row"))
+            .collect()
+    })
+    .into_iter()
+    .collect()
+}
