@@ -168,6 +168,22 @@ pub struct DamageEdit {
     pub change: JointOverride,
 }
 
+impl EditTarget {
+    /// The actuators this target names among `joint_names` (actuator order).
+    pub fn resolve(&self, joint_names: &[String; N_ACTUATORS]) -> Result<Vec<usize>, DamageError> {
+        match self {
+            EditTarget::All => Ok((0..N_ACTUATORS).collect()),
+            EditTarget::Joint(name) => match joint_names.iter().position(|j| j == name) {
+                Some(i) => Ok(vec![i]),
+                None => Err(DamageError::NoSuchJoint {
+                    name: name.clone(),
+                    known: joint_names.join(", "),
+                }),
+            },
+        }
+    }
+}
+
 impl DamageEdit {
     /// A comma-separated list of edits; `none` is the empty list.
     pub fn parse_list(text: &str) -> Result<Vec<DamageEdit>, DamageError> {
@@ -374,16 +390,7 @@ impl DamageState {
 
     /// The actuators an edit's target names.
     pub fn resolve(&self, target: &EditTarget) -> Result<Vec<usize>, DamageError> {
-        match target {
-            EditTarget::All => Ok((0..N_ACTUATORS).collect()),
-            EditTarget::Joint(name) => match self.joint_names.iter().position(|j| j == name) {
-                Some(i) => Ok(vec![i]),
-                None => Err(DamageError::NoSuchJoint {
-                    name: name.clone(),
-                    known: self.joint_names.join(", "),
-                }),
-            },
-        }
+        target.resolve(&self.joint_names)
     }
 
     /// Applies an edit before env step `step` runs (each joint it changes is one event).

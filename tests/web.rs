@@ -239,28 +239,50 @@ fn png_variance(png: &[u8]) -> (u32, u32, f64) {
     (info.width, info.height, var)
 }
 
+/// `gaitscope live --web` on the bundled LSTM with `args`, on three free ports (control page,
+/// web viewer, gRPC), no display; returns once the control page answers.
+fn live_web(args: &[&std::ffi::OsStr], stderr: Stdio) -> (Killed, [u16; 3]) {
+    let ports = free_ports::<3>();
+    let child = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["live", "--web", "--checkpoint", "checkpoints/encoder-lstm"])
+        .args(["--exit-after", "300"])
+        .args(["--port", &ports[0].to_string()])
+        .args(["--viewer-port", &ports[1].to_string()])
+        .args(["--grpc-port", &ports[2].to_string()])
+        .args(args)
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .stdout(Stdio::null())
+        .stderr(stderr)
+        .spawn()
+        .unwrap();
+    let mut live = Killed(child);
+    wait_for_port(ports[0], &mut live.0);
+    (live, ports)
+}
+
+/// Frames the page paints per second over `ms` (requestAnimationFrame).
+async fn animation_fps(client: &Client, ms: u32) -> Value {
+    client
+        .execute_async(
+            "const [ms, done] = arguments; let n = 0; const t0 = performance.now();
+             function tick() { n++; if (performance.now() - t0 < ms) requestAnimationFrame(tick);
+             else done(1000 * n / (performance.now() - t0)); }
+             requestAnimationFrame(tick);",
+            vec![json!(ms)],
+        )
+        .await
+        .unwrap()
+}
+
 #[test]
 fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     let dir = tempfile::tempdir().unwrap();
     let save = dir.path().join("session.rrd");
-    let [port, viewer_port, grpc_port] = free_ports::<3>();
-    let child = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .args(["live", "--web", "--checkpoint", "checkpoints/encoder-lstm"])
-        .args(["--condition", "manual", "--paused", "--exit-after", "300"])
-        .args(["--port", &port.to_string()])
-        .args(["--viewer-port", &viewer_port.to_string()])
-        .args(["--grpc-port", &grpc_port.to_string()])
-        .arg("--save")
-        .arg(&save)
-        .env_remove("DISPLAY")
-        .env_remove("WAYLAND_DISPLAY")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut live = Killed(child);
-    wait_for_port(port, &mut live.0);
+    let args = ["--condition", "manual", "--paused", "--save"].map(std::ffi::OsStr::new);
+    let (mut live, [port, viewer_port, grpc_port]) =
+        live_web(&[&args[..], &[save.as_os_str()]].concat(), Stdio::piped());
 
     // Every socket it listens on is a loopback one, and it serves all three of ours.
     let sockets = listening_sockets(live.0.id());
@@ -298,10 +320,20 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         let count = client.find(Locator::Id("step-count")).await.unwrap();
         count.clear().await.unwrap();
         count.send_keys("5").await.unwrap();
-        client.find(Locator::Id("step")).await.unwrap().click().await.unwrap();
+        client
+            .find(Locator::Id("step"))
+            .await
+            .unwrap()
+            .click()
+            .await
+            .unwrap();
         wait_state(&client, "5 steps", |s| lane_step(s) >= 5).await;
         tokio::time::sleep(Duration::from_millis(500)).await;
-        assert_eq!(lane_step(&state(&client).await), 5, "exactly 5, then paused");
+        assert_eq!(
+            lane_step(&state(&client).await),
+            5,
+            "exactly 5, then paused"
+        );
 
         // "fail" on ankle_3: the joint is failed before the next step (manual → severe 0.1).
         fail.click().await.unwrap();
@@ -330,7 +362,13 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         eprintln!("click → applied, seen by the page: {latency}");
         count.clear().await.unwrap();
         count.send_keys("1").await.unwrap();
-        client.find(Locator::Id("step")).await.unwrap().click().await.unwrap();
+        client
+            .find(Locator::Id("step"))
+            .await
+            .unwrap()
+            .click()
+            .await
+            .unwrap();
         let s = wait_state(&client, "step 6", |s| lane_step(s) == 6).await;
         let ankle = joint(&s, "ankle_3");
         assert_eq!(
@@ -342,15 +380,27 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         let handled = s["commands_handled"].as_u64().unwrap();
         for (body, reason) in [
             ("{not json", "malformed request"),
-            (r#"{"command":"edit","edit":"fail:ankle_9"}"#, "unknown joint 'ankle_9'"),
+            (
+                r#"{"command":"edit","edit":"fail:ankle_9"}"#,
+                "unknown joint 'ankle_9'",
+            ),
             (r#"{"command":"edit","edit":"scale:ankle_3=1.5"}"#, "[0, 1]"),
-            (r#"{"command":"speed","value":100}"#, "speed must be between"),
+            (
+                r#"{"command":"speed","value":100}"#,
+                "speed must be between",
+            ),
             (r#"{"command":"self_destruct"}"#, "malformed request"),
         ] {
             let reply = send_raw(&client, body).await;
             let error = reply["error"].as_str().unwrap_or_default();
             assert!(error.contains(reason), "{body}: {reply}");
-            let shown = client.find(Locator::Id("error")).await.unwrap().text().await.unwrap();
+            let shown = client
+                .find(Locator::Id("error"))
+                .await
+                .unwrap()
+                .text()
+                .await
+                .unwrap();
             assert!(shown.contains(reason), "{shown}");
         }
         let s = state(&client).await;
@@ -371,31 +421,34 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             .await
             .unwrap();
         // Frames the browser paints per second while the viewer runs (requestAnimationFrame).
-        let fps = client
-            .execute_async(
-                "const done = arguments[0]; let n = 0; const t0 = performance.now();
-                 function tick() { n++; if (performance.now() - t0 < 3000) requestAnimationFrame(tick);
-                 else done(1000 * n / (performance.now() - t0)); }
-                 requestAnimationFrame(tick);",
-                vec![],
-            )
-            .await
-            .unwrap();
+        let fps = animation_fps(&client, 3000).await;
         eprintln!("web viewer tab: {fps} frames/s (requestAnimationFrame, headless SwiftShader)");
         tokio::time::sleep(Duration::from_secs(10)).await;
         let shot = client.screenshot().await.unwrap();
         let (w, h, var) = png_variance(&shot);
         let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("web-viewer.png");
         std::fs::write(&out, &shot).unwrap();
-        eprintln!("viewer screenshot {w}×{h}, grey variance {var:.0}: {}", out.display());
+        eprintln!(
+            "viewer screenshot {w}×{h}, grey variance {var:.0}: {}",
+            out.display()
+        );
         assert!(var > 100.0, "the viewer tab is blank (variance {var})");
         client.switch_to_window(handles[0].clone()).await.unwrap();
         let shot = client.screenshot().await.unwrap();
-        std::fs::write(Path::new(env!("CARGO_TARGET_TMPDIR")).join("web-control.png"), &shot)
-            .unwrap();
+        std::fs::write(
+            Path::new(env!("CARGO_TARGET_TMPDIR")).join("web-control.png"),
+            &shot,
+        )
+        .unwrap();
 
         // Quit from the page ends the process, and the saved stream holds what the page did.
-        client.find(Locator::Id("quit")).await.unwrap().click().await.unwrap();
+        client
+            .find(Locator::Id("quit"))
+            .await
+            .unwrap()
+            .click()
+            .await
+            .unwrap();
         client.close().await.unwrap();
     });
     let deadline = Instant::now() + WAIT;
@@ -540,20 +593,8 @@ fn native_live_and_the_viewer_it_spawns_listen_only_on_loopback() {
 #[test]
 #[ignore]
 fn docs_pictures_and_latency_of_a_running_session() {
-    let [port, viewer_port, grpc_port] = free_ports::<3>();
-    let child = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .args(["live", "--web", "--checkpoint", "checkpoints/encoder-lstm"])
-        .args(["--compare", "checkpoints/baseline", "--condition", "severe"])
-        .args(["--exit-after", "300", "--port", &port.to_string()])
-        .args(["--viewer-port", &viewer_port.to_string()])
-        .args(["--grpc-port", &grpc_port.to_string()])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut live = Killed(child);
-    wait_for_port(port, &mut live.0);
+    let args = ["--compare", "checkpoints/baseline", "--condition", "severe"];
+    let (_live, [port, ..]) = live_web(&args.map(std::ffi::OsStr::new), Stdio::null());
     let (_driver, driver_port) = chromedriver();
     let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs");
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -562,7 +603,10 @@ fn docs_pictures_and_latency_of_a_running_session() {
         .unwrap();
     rt.block_on(async {
         let client = browser(driver_port).await;
-        client.goto(&format!("http://127.0.0.1:{port}/")).await.unwrap();
+        client
+            .goto(&format!("http://127.0.0.1:{port}/"))
+            .await
+            .unwrap();
         client
             .wait()
             .at_most(WAIT)
@@ -582,16 +626,27 @@ fn docs_pictures_and_latency_of_a_running_session() {
                 .await
                 .unwrap();
             let text = loop {
-                let t = client.find(Locator::Id("latency")).await.unwrap().text().await.unwrap();
+                let t = client
+                    .find(Locator::Id("latency"))
+                    .await
+                    .unwrap()
+                    .text()
+                    .await
+                    .unwrap();
                 if t != "–" && !latencies.iter().any(|(_, l)| *l == t) {
                     break t;
                 }
-                assert!(t0.elapsed() < Duration::from_secs(20), "no latency shown after {joint}: {t}");
+                assert!(
+                    t0.elapsed() < Duration::from_secs(20),
+                    "no latency shown after {joint}: {t}"
+                );
                 tokio::time::sleep(Duration::from_millis(5)).await;
             };
             latencies.push((t0.elapsed().as_millis(), text));
         }
-        eprintln!("click → applied, as the page shows it (and the driver's round trip): {latencies:?}");
+        eprintln!(
+            "click → applied, as the page shows it (and the driver's round trip): {latencies:?}"
+        );
         let s = state(&client).await;
         let url = s["session"]["viewer_url"].as_str().unwrap().to_string();
         client.new_window(true).await.unwrap();
@@ -599,22 +654,24 @@ fn docs_pictures_and_latency_of_a_running_session() {
         client.switch_to_window(handles[1].clone()).await.unwrap();
         client.goto(&url).await.unwrap();
         tokio::time::sleep(Duration::from_secs(20)).await;
-        let fps = client
-            .execute_async(
-                "const done = arguments[0]; let n = 0; const t0 = performance.now();
-                 function tick() { n++; if (performance.now() - t0 < 5000) requestAnimationFrame(tick);
-                 else done(1000 * n / (performance.now() - t0)); }
-                 requestAnimationFrame(tick);",
-                vec![],
-            )
-            .await
-            .unwrap();
+        let fps = animation_fps(&client, 5000).await;
         eprintln!("web viewer tab: {fps} frames/s");
-        std::fs::write(docs.join("web-viewer.png"), client.screenshot().await.unwrap()).unwrap();
+        std::fs::write(
+            docs.join("web-viewer.png"),
+            client.screenshot().await.unwrap(),
+        )
+        .unwrap();
         client.switch_to_window(handles[0].clone()).await.unwrap();
-        std::fs::write(docs.join("web-control.png"), client.screenshot().await.unwrap()).unwrap();
+        std::fs::write(
+            docs.join("web-control.png"),
+            client.screenshot().await.unwrap(),
+        )
+        .unwrap();
         let s = state(&client).await;
-        eprintln!("sim: {} of {} steps/s", s["steps_per_s"], s["target_steps_per_s"]);
+        eprintln!(
+            "sim: {} of {} steps/s",
+            s["steps_per_s"], s["target_steps_per_s"]
+        );
         client.close().await.unwrap();
     });
 }

@@ -21,7 +21,7 @@ use serde::Deserialize;
 use serde_json::{Value, json};
 
 use super::{Breakpoint, Command, LiveCondition, MAX_SPEED, MIN_SPEED, SimHandle, Slot, Snapshot};
-use crate::damage::{DamageEdit, EditTarget, JointState};
+use crate::damage::{DamageEdit, JointState};
 use crate::policy::ActionMode;
 
 /// The control page: static HTML and JS, no build step.
@@ -513,26 +513,14 @@ pub fn commands(
             .map(|l| l.joint_names.clone())
             .ok_or_else(|| "no model is loaded".to_string())
     };
-    // One edit list → one override per joint it names, joints checked by name.
-    let resolve = |text: &str| -> Result<Vec<(usize, DamageEdit)>, String> {
+    // An edit list, its joints checked by name: the parser and resolver the CLI uses.
+    let parse_edits = |text: &str| -> Result<Vec<DamageEdit>, String> {
         let names = joint_names()?;
         let edits = DamageEdit::parse_list(text).map_err(|e| e.to_string())?;
-        let mut out = Vec::new();
-        for edit in edits {
-            match &edit.target {
-                EditTarget::All => out.extend((0..names.len()).map(|i| (i, edit.clone()))),
-                EditTarget::Joint(name) => match names.iter().position(|n| n == name) {
-                    Some(i) => out.push((i, edit.clone())),
-                    None => {
-                        return Err(format!(
-                            "unknown joint '{name}' (the Ant's joints: {})",
-                            names.join(", ")
-                        ));
-                    }
-                },
-            }
+        for edit in &edits {
+            edit.target.resolve(&names).map_err(|e| e.to_string())?;
         }
-        Ok(out)
+        Ok(edits)
     };
     Ok(match request {
         WebRequest::Pause => vec![Command::Pause],
@@ -564,13 +552,18 @@ pub fn commands(
             }
             vec![Command::SetStepLimit(value)]
         }
-        WebRequest::Edit { edit } => resolve(&edit)?
-            .into_iter()
-            .map(|(actuator, edit)| Command::Override {
-                actuator,
-                change: edit.change,
-            })
-            .collect(),
+        WebRequest::Edit { edit } => {
+            let names = joint_names()?;
+            let mut commands = Vec::new();
+            for edit in DamageEdit::parse_list(&edit).map_err(|e| e.to_string())? {
+                let actuators = edit.target.resolve(&names).map_err(|e| e.to_string())?;
+                commands.extend(actuators.into_iter().map(|actuator| Command::Override {
+                    actuator,
+                    change: edit.change,
+                }));
+            }
+            commands
+        }
         WebRequest::Sampled { on } => vec![Command::SetActionMode(if on {
             ActionMode::Sampled
         } else {
@@ -607,14 +600,8 @@ pub fn commands(
             let list = Breakpoint::parse_list(&list).map_err(|e| e.to_string())?;
             let names = joint_names()?;
             for b in &list {
-                if let Breakpoint::Trigger(Some(joint)) = b
-                    && !names.contains(joint)
-                {
-                    return Err(format!(
-                        "unknown joint '{joint}' (the Ant's joints: {})",
-                        names.join(", ")
-                    ));
-                }
+                b.validate(&names, snapshot.has_probe)
+                    .map_err(|e| e.to_string())?;
             }
             vec![Command::SetBreakpoints(list)]
         }
@@ -627,11 +614,7 @@ pub fn commands(
             }
             vec![Command::Rewind(step)]
         }
-        WebRequest::Fork { edits } => {
-            resolve(&edits)?;
-            let edits = DamageEdit::parse_list(&edits).map_err(|e| e.to_string())?;
-            vec![Command::Fork(edits)]
-        }
+        WebRequest::Fork { edits } => vec![Command::Fork(parse_edits(&edits)?)],
         WebRequest::EndFork => vec![Command::EndFork],
         WebRequest::Scenario { name, json } => {
             let scenario = match (name, json) {
