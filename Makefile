@@ -1,7 +1,7 @@
 # The two commands of the README are `make run` and `make test`; both set up first.
 CARGO ?= cargo
 
-.PHONY: setup run test bench viewer sweep
+.PHONY: setup run test test-sweeps bench viewer sweep
 setup:
 	@./scripts/setup.sh
 
@@ -27,4 +27,12 @@ viewer:
 sweep: setup
 	@test -n "$(SPEC)" || { echo "usage: make sweep SPEC=sweeps/FILE.toml [STORAGE=DIR] [ADDRESS=auto] [RESUME=1]"; exit 2; }
 	$(CARGO) build --release
-	$$(./sweeps/venv.sh) sweeps/sweep.py $(SPEC) $(if $(STORAGE),--storage $(STORAGE)) $(if $(ADDRESS),--address $(ADDRESS)) $(if $(RESUME),--resume) --gaitscope $${CARGO_TARGET_DIR:-target}/release/gaitscope
+	py=$$(./sweeps/venv.sh) && $$py sweeps/sweep.py $(SPEC) $(if $(STORAGE),--storage $(STORAGE)) $(if $(ADDRESS),--address $(ADDRESS)) $(if $(RESUME),--resume) --gaitscope $${CARGO_TARGET_DIR:-target}/release/gaitscope
+
+# The launcher's tests on real Ray (a smoke sweep, a killed trial, an interrupted sweep, a two-node
+# cluster on loopback, bad specs); CI runs them after `make test`.
+test-sweeps:
+	@# The binary `cargo test` builds (dev-dependency features unify into it), so after `make test`
+	@# nothing compiles again.
+	$(CARGO) test --release --no-run
+	py=$$(./sweeps/venv.sh) && $$py sweeps/test_sweep.py --gaitscope $${CARGO_TARGET_DIR:-target}/release/gaitscope

@@ -15,11 +15,13 @@ STORAGE/summary.json and runs `gaitscope eval` on the final checkpoints, grouped
 from __future__ import annotations
 
 import argparse
-import hashlib
+import ctypes
+import signal
 import itertools
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -29,7 +31,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # Spec keys that are not `gaitscope train` flags.
-SPEC_KEYS = {"name", "steps", "grid", "scheduler", "cpus_per_trial", "max_failures", "eval_episodes"}
+SPEC_KEYS = {"name", "steps", "grid", "scheduler", "cpus_per_trial", "max_failures", "max_concurrent_trials",
+             "eval_episodes"}
 # Train flags a spec may not set: the launcher owns them.
 OWNED_FLAGS = {"out", "resume", "steps", "config", "quiet", "check", "encoder", "seed"}
 MODEL_NAMES = {"none": "baseline", "lstm": "encoder-lstm", "mlp-window": "encoder-mlp"}
@@ -72,6 +75,10 @@ def load_spec(path: Path, gaitscope: str) -> dict:
         raise SpecError(f"{path}: name '{spec['name']}' must be letters, digits, '.', '_' or '-'")
     if not isinstance(spec["steps"], int) or spec["steps"] < 1:
         raise SpecError(f"{path}: steps must be a positive integer, got {spec['steps']!r}")
+    for key, least in (("cpus_per_trial", 1), ("max_concurrent_trials", 1), ("eval_episodes", 0), ("max_failures", -1)):
+        value = spec.get(key, least)
+        if not isinstance(value, int) or isinstance(value, bool) or value < least:
+            raise SpecError(f"{path}: {key} must be an integer ≥ {least}, got {value!r}")
     grid = spec["grid"]
     if not isinstance(grid, dict) or not grid:
         raise SpecError(f"{path}: [grid] must list at least one key")
@@ -140,7 +147,8 @@ def check_trials(gaitscope: str, spec: dict) -> None:
             cmd = train_command(gaitscope, spec, point, config_file) + ["--check", "--out", str(Path(tmp) / f"run-{i}")]
             done = subprocess.run(cmd, capture_output=True, text=True)
             if done.returncode != 0:
-                reason = done.stderr.strip().removeprefix("error: ")
+                reason = done.stderr.strip().removeprefix("error: ").replace(
+                    f"config file {config_file}", "the config from the grid's dotted keys")
                 raise SpecError(f"trial {point}: {reason}")
 
 
@@ -202,25 +210,69 @@ def follow(run: Path, process: subprocess.Popen, report) -> None:
         time.sleep(1.0)
 
 
-def make_trainable(gaitscope: str, spec: dict, runs: Path):
+def die_with_parent() -> None:
+    """Runs in the child before exec: the kernel kills `gaitscope train` when the Ray worker that
+    started it dies, so a lost worker never leaves a second writer in the run folder."""
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
+def stage_binary(gaitscope: str, stage: Path) -> Path:
+    """The binary and the libmujoco it links, in one folder for Ray's runtime_env (`--ship`): a
+    copy without debug info (a tenth of the size), the library beside it in lib/."""
+    stage.mkdir(parents=True, exist_ok=True)
+    (stage / "lib").mkdir(exist_ok=True)
+    if subprocess.run(["strip", "--strip-debug", "-o", str(stage / "gaitscope"), gaitscope]).returncode != 0:
+        shutil.copy2(gaitscope, stage / "gaitscope")
+    libs = [line.split("=>")[1].split("(")[0].strip()
+            for line in subprocess.run(["ldd", gaitscope], capture_output=True, text=True, check=True).stdout.splitlines()
+            if "libmujoco" in line and "=>" in line]
+    if not libs or not Path(libs[0]).exists():
+        raise SpecError(f"--ship: cannot find the libmujoco that {gaitscope} links (run `make setup`)")
+    shutil.copy2(libs[0], stage / "lib" / Path(libs[0]).name)
+    return stage
+
+
+def make_trainable(gaitscope: str, spec: dict, runs: Path, shipped: bool):
     def trainable(point: dict) -> None:
         from ray import tune
 
+        env = None
+        binary = gaitscope
+        if shipped:
+            # Ray unpacked the staged folder as this worker's working directory (no chdir to the
+            # trial folder: the driver set RAY_CHDIR_TO_TRIAL_DIR=0).
+            here = Path.cwd()
+            binary = str(here / "gaitscope")
+            env = {**os.environ, "LD_LIBRARY_PATH": str(here / "lib")}
         group, folder = run_name(point)
         run = runs / group / folder
         run.parent.mkdir(parents=True, exist_ok=True)
         config_file = run.parent / f"{folder}.config.json"
         config_file.write_text(json.dumps(nested_config(point)))
-        cmd = train_command(gaitscope, spec, point, config_file)
+        cmd = train_command(binary, spec, point, config_file)
         # A retried trial (or one restored with the sweep) continues its run, not from step 0.
         if (run / "checkpoint.json").exists():
             cmd += ["--resume", str(run)]
         else:
             cmd += ["--out", str(run)]
+        import ray
+
+        node = ray.get_runtime_context().get_node_id()
+        # Attempts of this run, over retries and restores: 1 when nothing ever failed.
+        attempts_file = run.parent / f"{folder}.attempts"
+        attempt = int(attempts_file.read_text() or 0) + 1 if attempts_file.exists() else 1
+        attempts_file.write_text(str(attempt))
         log = open(run.parent / f"{folder}.log", "a")
-        process = subprocess.Popen(cmd, stdout=log, stderr=log)
+        log.write(f"sweep: attempt {attempt} on node {node}: {' '.join(cmd)}\n")
+        log.flush()
+        process = subprocess.Popen(cmd, stdout=log, stderr=log, preexec_fn=die_with_parent, env=env)
+
+        def report(result, **kw):
+            tune.report({**result, "attempt": attempt, "node": node}, **kw)
+
         try:
-            follow(run, process, tune.report)
+            follow(run, process, report)
         finally:
             if process.poll() is None:
                 process.kill()
@@ -240,6 +292,9 @@ def main() -> int:
     parser.add_argument("--address", help="a running Ray cluster (e.g. auto); default: a local one")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted sweep in STORAGE")
     parser.add_argument("--gaitscope", default=str(ROOT / "target/release/gaitscope"))
+    parser.add_argument("--ship", action="store_true",
+                        help="send the binary and libmujoco to every node with Ray's runtime_env "
+                             "(for nodes without this checkout at the same path)")
     args = parser.parse_args()
     gaitscope = str(Path(args.gaitscope).resolve())
     try:
@@ -255,8 +310,17 @@ def main() -> int:
     storage = (args.storage or ROOT / "runs/sweeps" / spec["name"]).resolve()
     runs = storage / "runs"
     storage.mkdir(parents=True, exist_ok=True)
-    ray.init(address=args.address, include_dashboard=False, log_to_driver=False)
-    trainable = tune.with_resources(make_trainable(gaitscope, spec, runs), {"cpu": spec.get("cpus_per_trial", 1)})
+    runtime_env = None
+    if args.ship:
+        try:
+            runtime_env = {"working_dir": str(stage_binary(gaitscope, storage / "ship"))}
+        except SpecError as e:
+            print(f"sweep: refused: {e}", file=sys.stderr)
+            return 2
+        os.environ["RAY_CHDIR_TO_TRIAL_DIR"] = "0"  # Tune passes it on to the trainables
+    ray.init(address=args.address, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
+    trainable = tune.with_resources(make_trainable(gaitscope, spec, runs, args.ship),
+                                    {"cpu": spec.get("cpus_per_trial", 1)})
     experiment = storage / "tune"
     if args.resume and tune.Tuner.can_restore(str(experiment)):
         tuner = tune.Tuner.restore(str(experiment), trainable, resume_errored=True)
@@ -271,7 +335,8 @@ def main() -> int:
         tuner = tune.Tuner(
             trainable,
             param_space=param_space,
-            tune_config=tune.TuneConfig(scheduler=scheduler),
+            tune_config=tune.TuneConfig(scheduler=scheduler,
+                                        max_concurrent_trials=spec.get("max_concurrent_trials")),
             run_config=tune.RunConfig(
                 name="tune",
                 storage_path=str(storage),
@@ -298,19 +363,26 @@ def main() -> int:
             "success_rate": metrics.get("success_rate"),
             "episodic_return": metrics.get("episodic_return"),
             "finished": ok,
+            "attempts": metrics.get("attempt"),
+            "node": metrics.get("node"),
             "error": None if result.error is None else str(result.error),
         })
     (storage / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"sweep: {len(summary['trials'])} trials → {storage / 'summary.json'}")
 
-    # eval_episodes = 0 skips the evaluation.
-    if finished and spec.get("eval_episodes", 200) > 0:
+    # eval_episodes = 0 skips the evaluation; unset, gaitscope eval's own default applies.
+    episodes = spec.get("eval_episodes")
+    if finished and episodes != 0:
         groups: dict[str, list[str]] = {}
         for t in summary["trials"]:
             groups.setdefault(Path(t["checkpoint"]).parent.name, []).append(t["checkpoint"])
         for group, dirs in groups.items():
-            subprocess.run([gaitscope, "eval", "--checkpoint", *dirs, "--episodes", str(spec.get("eval_episodes", 200)),
-                            "--out", str(storage / "eval" / group)], check=True)
+            cmd = [gaitscope, "eval", "--checkpoint", *dirs, "--out", str(storage / "eval" / group)]
+            if episodes is not None:
+                cmd += ["--episodes", str(episodes)]
+            if subprocess.run(cmd).returncode != 0:
+                print(f"sweep: gaitscope eval failed on group {group}", file=sys.stderr)
+                return 1
     return 0 if finished else 1
 
 
