@@ -161,6 +161,10 @@ struct TrainArgs {
     /// One encoder for actor and critic (SB3's share_features_extractor).
     #[arg(long)]
     share_encoder: bool,
+    /// Size of the encoder's latent z (default 32, the paper's); the window length is the
+    /// config's `context.len`.
+    #[arg(long)]
+    z_dim: Option<usize>,
     #[arg(long)]
     batch_size: Option<usize>,
     #[arg(long)]
@@ -755,6 +759,11 @@ fn train_command(args: TrainArgs) -> Result<()> {
     };
     let mut opts = train::ant_options(encoder, args.steps, args.seed, out.clone());
     opts.env = args.env.load()?;
+    // The config's window length is the one the encoder reads and the replay buffer stores.
+    opts.net.context_len = opts.env.context.len;
+    if let Some(z) = args.z_dim {
+        opts.net.z_dim = z;
+    }
     opts.net.share_encoder = args.share_encoder;
     opts.checkpoint_every = args.checkpoint_every;
     opts.save_replay = !args.no_save_replay;
@@ -779,7 +788,11 @@ fn train_command(args: TrainArgs) -> Result<()> {
             bail!("--check is for a fresh run (a resumed run keeps its own options)");
         }
         train::check_ant(&opts)?;
-        println!("{}", serde_json::to_string(&opts.env)?);
+        // The task config at the top level, and the network and SAC settings the run would use.
+        let mut resolved = serde_json::to_value(&opts.env)?;
+        resolved["net"] = serde_json::to_value(&opts.net)?;
+        resolved["sac"] = serde_json::to_value(&opts.sac)?;
+        println!("{resolved}");
         return Ok(());
     }
     let stop = Arc::new(AtomicBool::new(false));

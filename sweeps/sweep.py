@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import hashlib
 import signal
 import itertools
 import json
+import math
 import os
 import re
 import shutil
@@ -31,11 +33,16 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # Spec keys that are not `gaitscope train` flags.
-SPEC_KEYS = {"name", "steps", "grid", "scheduler", "cpus_per_trial", "max_failures", "max_concurrent_trials",
-             "eval_episodes"}
+SPEC_KEYS = {"name", "steps", "grid", "search", "num_samples", "search_alg", "metric", "mode", "scheduler",
+             "cpus_per_trial", "max_failures", "max_concurrent_trials", "eval_episodes"}
 # Train flags a spec may not set: the launcher owns them.
 OWNED_FLAGS = {"out", "resume", "steps", "config", "quiet", "check", "encoder", "seed"}
 MODEL_NAMES = {"none": "baseline", "lstm": "encoder-lstm", "mlp-window": "encoder-mlp"}
+# What a trial reports, so what a scheduler or search algorithm may optimise.
+METRICS = {"success_rate", "episodic_return", "steps_done", "global_step", "steps_per_s", "episodes"}
+# [search] distributions: name → how its arguments must look.
+DISTRIBUTIONS = {"uniform", "loguniform", "randint", "choice"}
+SEARCH_ALGS = {"random", "optuna"}
 # How many of the latest episodes the reported success rate and return average over.
 RECENT_EPISODES = 20
 
@@ -68,7 +75,7 @@ def load_spec(path: Path, gaitscope: str) -> dict:
         if flag not in flags:
             known = ", ".join(sorted(k.replace("-", "_") for k in flags if k not in OWNED_FLAGS and k != "help"))
             raise SpecError(f"{path}: unknown key '{key}' (spec keys: {', '.join(sorted(SPEC_KEYS))}; train flags: {known})")
-    for required in ("name", "steps", "grid"):
+    for required in ("name", "steps"):
         if required not in spec:
             raise SpecError(f"{path}: missing '{required}'")
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", str(spec["name"])):
@@ -79,31 +86,84 @@ def load_spec(path: Path, gaitscope: str) -> dict:
         value = spec.get(key, least)
         if not isinstance(value, int) or isinstance(value, bool) or value < least:
             raise SpecError(f"{path}: {key} must be an integer ≥ {least}, got {value!r}")
-    grid = spec["grid"]
-    if not isinstance(grid, dict) or not grid:
-        raise SpecError(f"{path}: [grid] must list at least one key")
+    grid, search = spec.setdefault("grid", {}), spec.setdefault("search", {})
+    if not isinstance(grid, dict) or not isinstance(search, dict) or not (grid or search):
+        raise SpecError(f"{path}: [grid] or [search] must list at least one key")
     for key, values in grid.items():
+        trial_key(path, key, flags)
         if not isinstance(values, list) or not values:
             raise SpecError(f"{path}: grid key '{key}' needs a non-empty list of values")
-    for encoder in grid.get("encoder", ["lstm"]):
+    for key, dist in search.items():
+        trial_key(path, key, flags)
+        if key in grid:
+            raise SpecError(f"{path}: '{key}' is in both [grid] and [search]")
+        if not isinstance(dist, dict) or len(dist) != 1 or next(iter(dist)) not in DISTRIBUTIONS:
+            raise SpecError(f"{path}: search key '{key}' needs one of {', '.join(sorted(DISTRIBUTIONS))}, "
+                            f"e.g. {{uniform = [20.0, 50.0]}}; got {dist!r}")
+        (kind, args), = dist.items()
+        numbers = isinstance(args, list) and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args)
+        if kind == "choice":
+            if not isinstance(args, list) or not args:
+                raise SpecError(f"{path}: search key '{key}': choice needs a non-empty list")
+        elif not (numbers and len(args) == 2 and args[0] < args[1] and (kind != "loguniform" or args[0] > 0)
+                  and (kind != "randint" or all(isinstance(a, int) for a in args))):
+            raise SpecError(f"{path}: search key '{key}': {kind} needs [low, high] with low < high"
+                            + (" and low > 0" if kind == "loguniform" else "")
+                            + (", integers (high excluded)" if kind == "randint" else "") + f"; got {args!r}")
+    encoders = grid.get("encoder") or search.get("encoder", {}).get("choice") or ["lstm"]
+    for encoder in encoders:
         if encoder not in MODEL_NAMES:
             raise SpecError(f"{path}: no encoder '{encoder}' (gaitscope has {', '.join(MODEL_NAMES)})")
+    samples = spec.get("num_samples", 1)
+    if not isinstance(samples, int) or isinstance(samples, bool) or samples < 1:
+        raise SpecError(f"{path}: num_samples must be an integer ≥ 1, got {samples!r}")
+    if spec.get("search_alg", "random") not in SEARCH_ALGS:
+        raise SpecError(f"{path}: search_alg '{spec['search_alg']}' is not one of {', '.join(sorted(SEARCH_ALGS))}")
+    if spec.get("search_alg") == "optuna" and grid:
+        raise SpecError(f"{path}: search_alg 'optuna' samples [search] only; move the [grid] keys there as choice")
+    for table in (spec, spec.get("scheduler", {})):
+        if table.get("metric", "success_rate") not in METRICS:
+            raise SpecError(f"{path}: metric '{table['metric']}' is not reported (trials report {', '.join(sorted(METRICS))})")
+        if table.get("mode", "max") not in ("max", "min"):
+            raise SpecError(f"{path}: mode must be 'max' or 'min', got {table['mode']!r}")
     spec["_flags"] = flags
     return spec
 
 
+def trial_key(path: Path, key: str, flags: dict[str, bool]) -> None:
+    """A grid or search key: encoder, seed, a dotted config key, or a train flag by its name."""
+    if key in ("encoder", "seed") or "." in key:
+        return
+    flag = key.replace("_", "-")
+    if flag in OWNED_FLAGS or flag not in flags or not flags[flag]:
+        raise SpecError(f"{path}: trial key '{key}' is not encoder, seed, a dotted config key "
+                        f"(damage.threshold) or a train flag that takes a value")
+
+
 def trials(spec: dict) -> list[dict]:
-    """The cross product of the grid: one dict of grid values per trial."""
+    """The trials `gaitscope train --check` vets before anything starts: the grid's cross
+    product, each with the search space at its lows, at its highs, and at every choice."""
     keys = list(spec["grid"])
-    return [dict(zip(keys, values)) for values in itertools.product(*(spec["grid"][k] for k in keys))]
+    points = [dict(zip(keys, values)) for values in itertools.product(*(spec["grid"][k] for k in keys))]
+    corners = [{}]
+    if spec["search"]:
+        def end(args, kind, i):
+            return args[i] - (1 if kind == "randint" and i == 1 else 0)
+        ranged = {k: d for k, d in spec["search"].items() if "choice" not in d}
+        low = {k: end(*d.values(), next(iter(d)), 0) for k, d in ranged.items()}
+        high = {k: end(*d.values(), next(iter(d)), 1) for k, d in ranged.items()}
+        first = {k: d["choice"][0] for k, d in spec["search"].items() if "choice" in d}
+        corners = [{**low, **first}, {**high, **first}]
+        corners += [{**low, **first, k: v} for k, d in spec["search"].items() if "choice" in d for v in d["choice"]]
+    return [{**p, **c} for p in points for c in corners]
 
 
 def nested_config(point: dict) -> dict:
     """Dotted grid keys (`damage.threshold`) as the nested JSON `gaitscope train --config` reads."""
     config: dict = {}
     for key, value in point.items():
-        if key in ("encoder", "seed"):
-            continue
+        if "." not in key:
+            continue  # encoder, seed and train flags go on the command line
         parts = key.split(".")
         node = config
         for part in parts[:-1]:
@@ -114,9 +174,13 @@ def nested_config(point: dict) -> dict:
 
 def run_name(point: dict) -> tuple[str, str]:
     """(group, folder): runs that differ only in seed share a group; the folder names the model
-    and seed the way `gaitscope eval` groups them (encoder-lstm-s1)."""
+    and seed the way `gaitscope eval` groups them (encoder-lstm-s1). A sampled value is shown to
+    4 digits, and a hash of the exact values keeps two samples from ever sharing a folder."""
     rest = {k: v for k, v in sorted(point.items()) if k not in ("encoder", "seed")}
-    group = "-".join(f"{k.split('.')[-1]}{v}" for k, v in rest.items()) or "default"
+    group = "-".join(f"{k.split('.')[-1].replace('_', '')}{v:.4g}" if isinstance(v, float) else
+                     f"{k.split('.')[-1].replace('_', '')}{v}" for k, v in rest.items()) or "default"
+    if any(isinstance(v, float) and f"{v:.4g}" != repr(v) for v in rest.values()):
+        group += "-" + hashlib.sha1(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:6]
     model = MODEL_NAMES[point.get("encoder", "lstm")]
     return group, f"{model}-s{point.get('seed', 0)}"
 
@@ -135,6 +199,10 @@ def train_command(gaitscope: str, spec: dict, point: dict, config_file: Path) ->
             cmd += [f"--{flag}", str(value)]
         elif value is True:
             cmd.append(f"--{flag}")
+    # Train flags in the grid or search space (batch_size, z_dim, …), after the spec's own.
+    for key, value in point.items():
+        if key not in ("encoder", "seed") and "." not in key:
+            cmd += [f"--{key.replace('_', '-')}", str(value)]
     return cmd
 
 
@@ -195,9 +263,10 @@ def follow(run: Path, process: subprocess.Popen, report) -> None:
                 "steps_per_s": latest.get("charts/SPS", 0.0),
                 "episodes": len(episodes),
             }
-            if episodes:
-                result["episodic_return"] = sum(r for r, _ in episodes) / len(episodes)
-                result["success_rate"] = sum(s for _, s in episodes) / len(episodes)
+            # NaN until the first episode ends: schedulers and searchers see the key in every
+            # result (Optuna needs it), and a NaN never wins a comparison.
+            result["episodic_return"] = sum(r for r, _ in episodes) / len(episodes) if episodes else math.nan
+            result["success_rate"] = sum(s for _, s in episodes) / len(episodes) if episodes else math.nan
             if saved:
                 saved_step = step
                 with tempfile.TemporaryDirectory() as tmp:
@@ -329,13 +398,25 @@ def main() -> int:
         if "scheduler" in spec:
             s = spec["scheduler"]
             scheduler = tune.schedulers.ASHAScheduler(
-                time_attr="global_step", metric=s.get("metric", "success_rate"), mode=s.get("mode", "max"),
+                time_attr="global_step", metric=s.get("metric", spec.get("metric", "success_rate")),
+                mode=s.get("mode", spec.get("mode", "max")),
                 grace_period=s.get("grace_period", spec["steps"] // 10), max_t=spec["steps"])
         param_space = {k: tune.grid_search(v) for k, v in spec["grid"].items()}
+        for key, dist in spec["search"].items():
+            (kind, args), = dist.items()
+            param_space[key] = tune.choice(args) if kind == "choice" else getattr(tune, kind)(*args)
+        search_alg = None
+        if spec.get("search_alg") == "optuna":
+            from ray.tune.search.optuna import OptunaSearch
+
+            search_alg = OptunaSearch(metric=spec.get("metric", "success_rate"), mode=spec.get("mode", "max"))
         tuner = tune.Tuner(
             trainable,
             param_space=param_space,
-            tune_config=tune.TuneConfig(scheduler=scheduler,
+            tune_config=tune.TuneConfig(scheduler=scheduler, search_alg=search_alg,
+                                        num_samples=spec.get("num_samples", 1),
+                                        # A stopped trial's worker exits, and its trainer with it.
+                                        reuse_actors=False,
                                         max_concurrent_trials=spec.get("max_concurrent_trials")),
             run_config=tune.RunConfig(
                 name="tune",
@@ -352,7 +433,9 @@ def main() -> int:
         group, folder = run_name(point)
         run = runs / group / folder
         metrics = result.metrics or {}
-        ok = result.error is None and metrics.get("steps_done") == spec["steps"]
+        # Under a scheduler a trial may end early by its decision (ASHA): that is finished too.
+        stopped_early = result.error is None and "scheduler" in spec and metrics.get("steps_done", 0) < spec["steps"]
+        ok = result.error is None and (metrics.get("steps_done") == spec["steps"] or stopped_early)
         finished &= ok
         summary["trials"].append({
             "encoder": point.get("encoder", "lstm"),
@@ -363,6 +446,7 @@ def main() -> int:
             "success_rate": metrics.get("success_rate"),
             "episodic_return": metrics.get("episodic_return"),
             "finished": ok,
+            "stopped_early": stopped_early,
             "attempts": metrics.get("attempt"),
             "node": metrics.get("node"),
             "error": None if result.error is None else str(result.error),

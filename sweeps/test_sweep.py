@@ -107,6 +107,13 @@ class Sweeps(unittest.TestCase):
             'cpus_per_trial = 0\n[grid]\nseed = [0]\n': "cpus_per_trial must be an integer",
             '[grid]\nseed = []\n': "non-empty list",
             '[grid\nseed = [0]\n': "Expected ']' at the end of a table",
+            '[search]\n"damage.threshold" = {loguniform = [0.0, 50.0]}\n': "loguniform needs [low, high] with low < high and low > 0",
+            '[search]\n"damage.threshold" = {normal = [30.0, 5.0]}\n': "needs one of choice, loguniform, randint, uniform",
+            '[search]\n"context.len" = {randint = [8, 8]}\n': "randint needs [low, high]",
+            '[search]\n"context.len" = {randint = [0, 8]}\n': "context.len must be at least 1",
+            'search_alg = "optuna"\n[grid]\nseed = [0]\n': "move the [grid] keys there as choice",
+            'metric = "reward"\n[grid]\nseed = [0]\n': "metric 'reward' is not reported",
+            '[grid]\nz_dim = [0]\n': "z size",
         }
         for body, reason in cases.items():
             with self.subTest(body=body):
@@ -141,6 +148,31 @@ class Sweeps(unittest.TestCase):
             self.assertTrue((d / "progress.csv").exists(), d)
             self.assertTrue((d / "result.json").exists(), d)
             self.assertTrue(list(d.glob("events.out.tfevents.*")), d)
+
+    def test_a_search_space_sampled_by_optuna_under_asha(self) -> None:
+        spec = write_spec(self.tmp, 'name = "search"\nnum_samples = 2\nsearch_alg = "optuna"\n'
+                          'metric = "episodic_return"\n' + SHORT.format(steps=1500, eval=0)
+                          + '[search]\nencoder = {choice = ["none"]}\n'
+                          '"damage.threshold" = {uniform = [20.0, 50.0]}\n'
+                          'z_dim = {choice = [16, 32]}\n"context.len" = {randint = [8, 17]}\n'
+                          '[scheduler]\ngrace_period = 500\n')
+        code, out = finish(sweep(spec, self.storage))
+        self.assertEqual(code, 0, out)
+        trials = json.loads((self.storage / "summary.json").read_text())["trials"]
+        self.assertEqual(len(trials), 2)
+        self.assertEqual(len({t["checkpoint"] for t in trials}), 2, "two samples, two run folders")
+        for t in trials:
+            c = t["config"]
+            self.assertTrue(20.0 <= c["damage.threshold"] <= 50.0 and 8 <= c["context.len"] < 17, c)
+            self.assertIn(c["z_dim"], (16, 32))
+            # The sampled values reached the run: its checkpoint holds them.
+            meta = json.loads((Path(t["checkpoint"]) / "checkpoint.json").read_text())
+            self.assertEqual(meta["net"]["context_len"], c["context.len"])
+            self.assertEqual(meta["net"]["z_dim"], c["z_dim"])
+            self.assertEqual(meta["env"]["damage"]["threshold"], c["damage.threshold"])
+            # ASHA may stop a trial early: then it is finished, and says so.
+            self.assertTrue(t["finished"])
+            self.assertEqual(t["stopped_early"], t["steps_done"] < 1500)
 
     def test_a_killed_trial_is_retried_from_its_last_checkpoint(self) -> None:
         spec = write_spec(self.tmp, 'name = "fault"\n' + SHORT.format(steps=2000, eval=0)

@@ -191,5 +191,35 @@ fn train_check_vets_options_and_config_and_writes_nothing() {
         out.to_str().unwrap(),
     ]);
     assert!(stderr(&done).contains("batch size"), "{}", stderr(&done));
+    // The window length comes from the config and reaches the network; --z-dim sets the latent.
+    let window = dir.path().join("window.json");
+    std::fs::write(&window, r#"{"context": {"len": 8}}"#).unwrap();
+    let done = gaitscope(&[
+        "train",
+        "--check",
+        "--config",
+        window.to_str().unwrap(),
+        "--z-dim",
+        "12",
+        "--batch-size",
+        "64",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(done.status.success(), "{}", stderr(&done));
+    let resolved: Value = serde_json::from_slice(&done.stdout).unwrap();
+    assert_eq!(resolved["context"]["len"], 8);
+    assert_eq!(resolved["net"]["context_len"], 8);
+    assert_eq!(resolved["net"]["z_dim"], 12);
+    assert_eq!(resolved["sac"]["batch_size"], 64);
+    let done = gaitscope(&[
+        "train",
+        "--check",
+        "--z-dim",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(stderr(&done).contains("z size"), "{}", stderr(&done));
     assert!(!out.exists(), "--check writes nothing");
 }
