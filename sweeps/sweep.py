@@ -291,7 +291,8 @@ def stage_binary(gaitscope: str, stage: Path) -> Path:
     copy without debug info (a tenth of the size), the library beside it in lib/."""
     stage.mkdir(parents=True, exist_ok=True)
     (stage / "lib").mkdir(exist_ok=True)
-    if subprocess.run(["strip", "--strip-debug", "-o", str(stage / "gaitscope"), gaitscope]).returncode != 0:
+    if not shutil.which("strip") or subprocess.run(
+            ["strip", "--strip-debug", "-o", str(stage / "gaitscope"), gaitscope]).returncode != 0:
         shutil.copy2(gaitscope, stage / "gaitscope")
     libs = [line.split("=>")[1].split("(")[0].strip()
             for line in subprocess.run(["ldd", gaitscope], capture_output=True, text=True, check=True).stdout.splitlines()
@@ -338,7 +339,9 @@ def make_trainable(gaitscope: str, spec: dict, runs: Path, shipped: bool):
         process = subprocess.Popen(cmd, stdout=log, stderr=log, preexec_fn=die_with_parent, env=env)
 
         def report(result, **kw):
-            tune.report({**result, "attempt": attempt, "node": node}, **kw)
+            # The run lives outside Tune's trial folder (the layout eval groups by, the same across
+            # restores): every result names it.
+            tune.report({**result, "attempt": attempt, "node": node, "run": str(run)}, **kw)
 
         try:
             follow(run, process, report)

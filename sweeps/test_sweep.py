@@ -148,6 +148,8 @@ class Sweeps(unittest.TestCase):
             self.assertTrue((d / "progress.csv").exists(), d)
             self.assertTrue((d / "result.json").exists(), d)
             self.assertTrue(list(d.glob("events.out.tfevents.*")), d)
+            last = json.loads((d / "result.json").read_text().splitlines()[-1])
+            self.assertIn(Path(last["run"]).name, trials, "Tune's results name the trial's run")
 
     def test_a_search_space_sampled_by_optuna_under_asha(self) -> None:
         spec = write_spec(self.tmp, 'name = "search"\nnum_samples = 2\nsearch_alg = "optuna"\n'
