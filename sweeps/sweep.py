@@ -97,19 +97,7 @@ def load_spec(path: Path, gaitscope: str) -> dict:
         trial_key(path, key, flags)
         if key in grid:
             raise SpecError(f"{path}: '{key}' is in both [grid] and [search]")
-        if not isinstance(dist, dict) or len(dist) != 1 or next(iter(dist)) not in DISTRIBUTIONS:
-            raise SpecError(f"{path}: search key '{key}' needs one of {', '.join(sorted(DISTRIBUTIONS))}, "
-                            f"e.g. {{uniform = [20.0, 50.0]}}; got {dist!r}")
-        (kind, args), = dist.items()
-        numbers = isinstance(args, list) and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args)
-        if kind == "choice":
-            if not isinstance(args, list) or not args:
-                raise SpecError(f"{path}: search key '{key}': choice needs a non-empty list")
-        elif not (numbers and len(args) == 2 and args[0] < args[1] and (kind != "loguniform" or args[0] > 0)
-                  and (kind != "randint" or all(isinstance(a, int) for a in args))):
-            raise SpecError(f"{path}: search key '{key}': {kind} needs [low, high] with low < high"
-                            + (" and low > 0" if kind == "loguniform" else "")
-                            + (", integers (high excluded)" if kind == "randint" else "") + f"; got {args!r}")
+        check_distribution(path, key, dist)
     encoders = grid.get("encoder") or search.get("encoder", {}).get("choice") or ["lstm"]
     for encoder in encoders:
         if encoder not in MODEL_NAMES:
@@ -130,6 +118,26 @@ def load_spec(path: Path, gaitscope: str) -> dict:
     return spec
 
 
+def check_distribution(path: Path, key: str, dist) -> None:
+    """A [search] value: exactly one of {uniform|loguniform|randint = [low, high]} or {choice = [...]}."""
+    if not isinstance(dist, dict) or len(dist) != 1 or next(iter(dist)) not in DISTRIBUTIONS:
+        raise SpecError(f"{path}: search key '{key}' needs one of {', '.join(sorted(DISTRIBUTIONS))}, "
+                        f"e.g. {{uniform = [20.0, 50.0]}}; got {dist!r}")
+    (kind, args), = dist.items()
+    if kind == "choice":
+        if not isinstance(args, list) or not args:
+            raise SpecError(f"{path}: search key '{key}': choice needs a non-empty list")
+        return
+    number = int if kind == "randint" else (int, float)
+    ok = (isinstance(args, list) and len(args) == 2
+          and all(isinstance(a, number) and not isinstance(a, bool) for a in args)
+          and args[0] < args[1] and (kind != "loguniform" or args[0] > 0))
+    if not ok:
+        raise SpecError(f"{path}: search key '{key}': {kind} needs [low, high] with low < high"
+                        + (" and low > 0" if kind == "loguniform" else "")
+                        + (", integers (high excluded)" if kind == "randint" else "") + f"; got {args!r}")
+
+
 def trial_key(path: Path, key: str, flags: dict[str, bool]) -> None:
     """A grid or search key: encoder, seed, a dotted config key, or a train flag by its name."""
     if key in ("encoder", "seed") or "." in key:
@@ -147,15 +155,18 @@ def trials(spec: dict) -> list[dict]:
     points = [dict(zip(keys, values)) for values in itertools.product(*(spec["grid"][k] for k in keys))]
     corners = [{}]
     if spec["search"]:
-        def end(args, kind, i):
-            return args[i] - (1 if kind == "randint" and i == 1 else 0)
-        ranged = {k: d for k, d in spec["search"].items() if "choice" not in d}
-        low = {k: end(*d.values(), next(iter(d)), 0) for k, d in ranged.items()}
-        high = {k: end(*d.values(), next(iter(d)), 1) for k, d in ranged.items()}
-        first = {k: d["choice"][0] for k, d in spec["search"].items() if "choice" in d}
-        corners = [{**low, **first}, {**high, **first}]
-        corners += [{**low, **first, k: v} for k, d in spec["search"].items() if "choice" in d for v in d["choice"]]
-    return [{**p, **c} for p in points for c in corners]
+        low, high, first = {}, {}, {}
+        for key, dist in spec["search"].items():
+            (kind, args), = dist.items()
+            if kind == "choice":
+                first[key] = args[0]
+            else:  # randint's high is excluded
+                low[key], high[key] = args[0], args[1] - 1 if kind == "randint" else args[1]
+        corners = [{**low, **first}, {**high, **first}] + [
+            {**low, **first, key: value}
+            for key, dist in spec["search"].items() if "choice" in dist for value in dist["choice"]]
+    unique = {json.dumps({**p, **c}, sort_keys=True): {**p, **c} for p in points for c in corners}
+    return list(unique.values())
 
 
 def nested_config(point: dict) -> dict:

@@ -124,6 +124,17 @@ class Sweeps(unittest.TestCase):
                 self.assertIn(reason, out)
                 self.assertFalse(self.storage.exists(), "nothing may be written for a refused spec")
 
+    def test_shipped_specs_pass_the_checks(self) -> None:
+        sys.path.insert(0, str(SWEEP.parent))
+        import sweep as launcher
+
+        specs = sorted((ROOT / "sweeps").glob("*.toml"))
+        self.assertGreaterEqual(len(specs), 4)
+        for path in specs:
+            with self.subTest(spec=path.name):
+                spec = launcher.load_spec(path, str(GAITSCOPE))
+                launcher.check_trials(str(GAITSCOPE), spec)
+
     def test_smoke_sweep_trains_reports_and_evaluates(self) -> None:
         spec = write_spec(self.tmp, 'name = "smoke"\n' + SHORT.format(steps=2000, eval=2)
                           + '[grid]\nencoder = ["none", "lstm"]\n')
