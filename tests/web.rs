@@ -165,6 +165,25 @@ async fn browser(port: u16) -> Client {
         .expect("a chromium session through chromedriver")
 }
 
+/// Chromium on the control page at `port`: the driver (killed on drop), the runtime to drive the
+/// client with, and the client.
+fn control_page(port: u16) -> (Killed, tokio::runtime::Runtime, Client) {
+    let (driver, driver_port) = chromedriver();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let client = rt.block_on(async {
+        let client = browser(driver_port).await;
+        client
+            .goto(&format!("http://127.0.0.1:{port}/"))
+            .await
+            .unwrap();
+        client
+    });
+    (driver, rt, client)
+}
+
 /// The page's own view of the sim: GET /state from inside the page.
 async fn state(client: &Client) -> Value {
     client
@@ -294,17 +313,8 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         assert!(sockets.iter().any(|(_, q)| *q == p), "{p} in {sockets:?}");
     }
 
-    let (_driver, driver_port) = chromedriver();
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(async {
-        let client = browser(driver_port).await;
-        client
-            .goto(&format!("http://127.0.0.1:{port}/"))
-            .await
-            .unwrap();
+    let (_driver, rt, client) = control_page(port);
+    rt.block_on(async move {
         // The joint rows appear with the first server-sent snapshot.
         let fail = client
             .wait()
@@ -489,7 +499,6 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
 
 #[test]
 fn bad_web_flags_are_refused_before_anything_listens() {
-    let [port] = free_ports::<1>();
     let run = |args: &[&str]| {
         Command::new(env!("CARGO_BIN_EXE_gaitscope"))
             .current_dir(env!("CARGO_MANIFEST_DIR"))
@@ -498,7 +507,9 @@ fn bad_web_flags_are_refused_before_anything_listens() {
             .output()
             .unwrap()
     };
-    let taken = TcpListener::bind(("127.0.0.1", port)).unwrap();
+    // A port the OS hands out and this test holds, so no other test can take it meanwhile.
+    let taken = TcpListener::bind(("127.0.0.1", 0)).unwrap();
+    let port = taken.local_addr().unwrap().port();
     let out = run(&["--port", &port.to_string()]);
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -508,9 +519,11 @@ fn bad_web_flags_are_refused_before_anything_listens() {
     );
     drop(taken);
     let out = run(&["--port", "9999", "--viewer-port", "9999"]);
-    assert!(String::from_utf8_lossy(&out.stderr).contains("given twice"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("given twice"), "{stderr}");
     let out = run(&["--bind", "not-an-address"]);
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--bind"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("--bind"), "{stderr}");
 }
 
 #[test]
@@ -595,18 +608,9 @@ fn native_live_and_the_viewer_it_spawns_listen_only_on_loopback() {
 fn docs_pictures_and_latency_of_a_running_session() {
     let args = ["--compare", "checkpoints/baseline", "--condition", "severe"];
     let (_live, [port, ..]) = live_web(&args.map(std::ffi::OsStr::new), Stdio::null());
-    let (_driver, driver_port) = chromedriver();
     let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs");
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(async {
-        let client = browser(driver_port).await;
-        client
-            .goto(&format!("http://127.0.0.1:{port}/"))
-            .await
-            .unwrap();
+    let (_driver, rt, client) = control_page(port);
+    rt.block_on(async move {
         client
             .wait()
             .at_most(WAIT)

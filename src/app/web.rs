@@ -104,11 +104,14 @@ impl WebOptions {
             ("web viewer", self.viewer_port),
             ("gRPC stream", self.grpc_port),
         ];
-        for (i, (what, port)) in ports.iter().enumerate() {
+        // A port given twice is a usage error, whatever is listening on it.
+        for (i, (_, port)) in ports.iter().enumerate() {
             if ports[..i].iter().any(|(_, p)| p == port) {
                 return Err(WebError::SamePort { port: *port });
             }
-            let addr = SocketAddr::new(self.bind, *port);
+        }
+        for (what, port) in ports {
+            let addr = SocketAddr::new(self.bind, port);
             TcpListener::bind(addr).map_err(|e| WebError::Bind {
                 what,
                 addr,
