@@ -305,9 +305,10 @@ def stage_binary(gaitscope: str, stage: Path) -> Path:
     if not shutil.which("strip") or subprocess.run(
             ["strip", "--strip-debug", "-o", str(stage / "gaitscope"), gaitscope]).returncode != 0:
         shutil.copy2(gaitscope, stage / "gaitscope")
+    linked = subprocess.run(["ldd", gaitscope], capture_output=True, text=True, check=True).stdout
+    # ldd's lines read "libmujoco.so.3.17.0 => /path/libmujoco.so.3.17.0 (0x...)".
     libs = [line.split("=>")[1].split("(")[0].strip()
-            for line in subprocess.run(["ldd", gaitscope], capture_output=True, text=True, check=True).stdout.splitlines()
-            if "libmujoco" in line and "=>" in line]
+            for line in linked.splitlines() if "libmujoco" in line and "=>" in line]
     if not libs or not Path(libs[0]).exists():
         raise SpecError(f"--ship: cannot find the libmujoco that {gaitscope} links (run `make setup`)")
     shutil.copy2(libs[0], stage / "lib" / Path(libs[0]).name)
@@ -316,6 +317,7 @@ def stage_binary(gaitscope: str, stage: Path) -> Path:
 
 def make_trainable(gaitscope: str, spec: dict, runs: Path, shipped: bool):
     def trainable(point: dict) -> None:
+        import ray
         from ray import tune
 
         env = None
@@ -337,8 +339,6 @@ def make_trainable(gaitscope: str, spec: dict, runs: Path, shipped: bool):
             cmd += ["--resume", str(run)]
         else:
             cmd += ["--out", str(run)]
-        import ray
-
         node = ray.get_runtime_context().get_node_id()
         # Attempts of this run, over retries and restores: 1 when nothing ever failed.
         attempts_file = run.parent / f"{folder}.attempts"
