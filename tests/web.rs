@@ -184,6 +184,25 @@ fn control_page(port: u16) -> (Killed, tokio::runtime::Runtime, Client) {
     (driver, rt, client)
 }
 
+/// Clicks the page's element `id`.
+async fn click(client: &Client, id: &str) {
+    client
+        .find(Locator::Id(id))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+}
+
+/// Types `count` into the page's step field and presses Step.
+async fn step_by(client: &Client, count: u32) {
+    let field = client.find(Locator::Id("step-count")).await.unwrap();
+    field.clear().await.unwrap();
+    field.send_keys(&count.to_string()).await.unwrap();
+    click(client, "step").await;
+}
+
 /// The page's own view of the sim: GET /state from inside the page.
 async fn state(client: &Client) -> Value {
     client
@@ -327,16 +346,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         assert_eq!(lane_step(&s), 0);
 
         // Pause is on: "Step" with 5 advances exactly 5 env steps.
-        let count = client.find(Locator::Id("step-count")).await.unwrap();
-        count.clear().await.unwrap();
-        count.send_keys("5").await.unwrap();
-        client
-            .find(Locator::Id("step"))
-            .await
-            .unwrap()
-            .click()
-            .await
-            .unwrap();
+        step_by(&client, 5).await;
         wait_state(&client, "5 steps", |s| lane_step(s) >= 5).await;
         tokio::time::sleep(Duration::from_millis(500)).await;
         assert_eq!(
@@ -370,15 +380,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             tokio::time::sleep(Duration::from_millis(20)).await;
         };
         eprintln!("click → applied, seen by the page: {latency}");
-        count.clear().await.unwrap();
-        count.send_keys("1").await.unwrap();
-        client
-            .find(Locator::Id("step"))
-            .await
-            .unwrap()
-            .click()
-            .await
-            .unwrap();
+        step_by(&client, 1).await;
         let s = wait_state(&client, "step 6", |s| lane_step(s) == 6).await;
         let ankle = joint(&s, "ankle_3");
         assert_eq!(
@@ -452,13 +454,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         .unwrap();
 
         // Quit from the page ends the process, and the saved stream holds what the page did.
-        client
-            .find(Locator::Id("quit"))
-            .await
-            .unwrap()
-            .click()
-            .await
-            .unwrap();
+        click(&client, "quit").await;
         client.close().await.unwrap();
     });
     let deadline = Instant::now() + WAIT;
