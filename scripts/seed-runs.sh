@@ -1,8 +1,11 @@
 #!/usr/bin/env bash
-# The evidence runs: seeds 1 and 2 of every model, 500k steps each, the protocol of seed 0
-# (`gaitscope train` defaults). Two lanes, one per core, at nice 19, so they only take what
-# foreground work leaves. Each run resumes from its last checkpoint (every 10,000 steps), so
-# `start` is the same command on the first day and on a fresh machine after a clone.
+# The evidence runs (issue 31): seeds 2-5 of every model, 500k steps each, the protocol of seed 0
+# (`gaitscope train` defaults); seeds 0-1 (and baseline-s2) are done. Two lanes, one per core,
+# at nice 19, so they only take what foreground work leaves. Each run resumes from its last
+# checkpoint (every 10,000 steps), so `start` is the same command on the first day and on a
+# fresh machine after a clone. The replay buffers live outside the work tree
+# (~/.cache/gaitscope/replay/<run>), so a kept machine resumes with its buffer; a new machine
+# refills one with the current policy (train --refill, 50,000 transitions) before updating.
 #
 #   scripts/seed-runs.sh start    # build, then run/resume both lanes in the background
 #   scripts/seed-runs.sh status   # steps done per run, and what is running
@@ -15,13 +18,15 @@ set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 seeds_dir="$root/checkpoints/seeds"
 state="$root/.deps/seed-runs"   # git-ignored: the binary copy, pids and logs
+replay_root="${GAITSCOPE_REPLAY_ROOT:-$HOME/.cache/gaitscope/replay}"
 steps=500000
 
-# Lane 0 carries the long LSTM runs; lane 1 the rest (about the same core-hours in all).
+# About the same core-hours per lane (LSTM ~3.5 h a run, window-MLP ~1.7, baseline ~1.5 on one
+# core); the two seed-2 re-runs first, as they replace runs damaged by an empty-buffer resume.
 lane_runs() {
   case $1 in
-    0) echo "encoder-lstm-s1 encoder-lstm-s2" ;;
-    1) echo "baseline-s1 encoder-mlp-s1 baseline-s2 encoder-mlp-s2" ;;
+    0) echo "encoder-lstm-s2 encoder-lstm-s3 encoder-lstm-s4 baseline-s5" ;;
+    1) echo "encoder-mlp-s2 baseline-s3 encoder-mlp-s3 baseline-s4 encoder-mlp-s4 encoder-mlp-s5 encoder-lstm-s5" ;;
   esac
 }
 
@@ -56,7 +61,8 @@ run_lane() {
     fi
     echo "$(date -u +%FT%TZ) lane $core: ${args[*]}"
     # `exec`-free so the lane survives to start the next run; the trainer's pid is kept for stop.
-    nice -n 19 taskset -c "$core" "$state/gaitscope" train "${args[@]}" --steps "$steps" --quiet &
+    nice -n 19 taskset -c "$core" "$state/gaitscope" train "${args[@]}" --steps "$steps" \
+      --replay-dir "$replay_root/$run" --quiet &
     echo $! >"$state/trainer-$core.pid"
     wait $! || echo "$(date -u +%FT%TZ) lane $core: $run exited with $?"
     rm -f "$state/trainer-$core.pid"

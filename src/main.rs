@@ -158,6 +158,14 @@ struct TrainArgs {
     /// Skip saving the replay buffer (~80 MB) with checkpoints; a resume then refills it.
     #[arg(long)]
     no_save_replay: bool,
+    /// Keep replay.bin in DIR instead of the run folder (e.g. under ~/.cache/gaitscope/, outside
+    /// a git work tree); the run records it, so a later --resume finds it there.
+    #[arg(long, value_name = "DIR")]
+    replay_dir: Option<PathBuf>,
+    /// A resume without its replay buffer first collects min(buffer size, steps done, N)
+    /// transitions with the current policy, without updates (at least 10000).
+    #[arg(long, value_name = "N", default_value_t = train::DEFAULT_REFILL)]
+    refill: usize,
     /// One encoder for actor and critic (SB3's share_features_extractor).
     #[arg(long)]
     share_encoder: bool,
@@ -767,6 +775,8 @@ fn train_command(args: TrainArgs) -> Result<()> {
     opts.net.share_encoder = args.share_encoder;
     opts.checkpoint_every = args.checkpoint_every;
     opts.save_replay = !args.no_save_replay;
+    opts.replay_dir = args.replay_dir.clone();
+    opts.refill = args.refill;
     opts.progress_bar = !args.quiet;
     if let Some(b) = args.batch_size {
         opts.sac.batch_size = b;
@@ -800,10 +810,10 @@ fn train_command(args: TrainArgs) -> Result<()> {
     ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
         .context("installing the Ctrl-C handler")?;
     let summary = train::train_ant(opts, resume, stop)?;
-    let how = if summary.interrupted {
-        "interrupted; checkpoint saved"
-    } else {
-        "done"
+    let how = match (summary.interrupted, summary.saved) {
+        (false, _) => "done",
+        (true, true) => "interrupted; checkpoint saved",
+        (true, false) => "interrupted before a new checkpoint; the last one stands",
     };
     eprintln!(
         "{how}: {} steps, {} episodes, {:.0} s, {:.1} steps/s → {}",

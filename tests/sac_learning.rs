@@ -110,6 +110,8 @@ fn options(encoder: EncoderKind, steps: u64, out: std::path::PathBuf) -> TrainOp
         progress_bar: false,
         update: UpdatePath::Fused,
         threads: 1,
+        replay_dir: None,
+        refill: gaitscope::train::DEFAULT_REFILL,
     }
 }
 

@@ -87,9 +87,65 @@ fn short_runs_of_every_encoder_write_loadable_checkpoints_and_resume() {
             "resume without replay {encoder}: {}",
             stderr(&out)
         );
-        assert!(stderr(&out).contains("empty replay buffer"));
+        assert!(
+            stderr(&out).contains("refilling the replay buffer: 320 transitions"),
+            "{}",
+            stderr(&out)
+        );
         assert_eq!(steps_done(&dir), 400);
+        let state: Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("train_state.json")).unwrap())
+                .unwrap();
+        let resumes = state["resumes"].as_array().unwrap();
+        assert_eq!(resumes.len(), 2, "{resumes:?}");
+        assert_eq!(resumes[0]["buffer"], "restored");
+        assert_eq!(resumes[1]["buffer"], "refilled");
+        assert_eq!(resumes[1]["step"], 320);
+        assert_eq!(resumes[1]["refill_transitions"], 320);
     }
+}
+
+#[test]
+fn the_replay_buffer_can_live_outside_the_run_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, cache) = (tmp.path().join("run"), tmp.path().join("cache/run"));
+    let (dir_s, cache_s) = (dir.to_str().unwrap(), cache.to_str().unwrap());
+    let mut args = vec![
+        "train",
+        "--encoder",
+        "none",
+        "--steps",
+        "250",
+        "--out",
+        dir_s,
+        "--replay-dir",
+        cache_s,
+        "--quiet",
+    ];
+    args.extend(SMALL);
+    let out = gaitscope(&args);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(cache.join("replay.bin").exists() && !dir.join("replay.bin").exists());
+    // The run remembers where its buffer is: a plain --resume restores it.
+    let out = gaitscope(&["train", "--resume", dir_s, "--steps", "300", "--quiet"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(!stderr(&out).contains("refilling"), "{}", stderr(&out));
+    let state: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("train_state.json")).unwrap())
+            .unwrap();
+    assert_eq!(state["resumes"][0]["buffer"], "restored");
+    assert_eq!(state["resumes"][0]["restored_transitions"], 250);
+    // --refill below the floor is refused before anything runs.
+    let out = gaitscope(&[
+        "train", "--resume", dir_s, "--steps", "350", "--refill", "500", "--quiet",
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("--refill 500 is below 10000"),
+        "{}",
+        stderr(&out)
+    );
+    assert_eq!(steps_done(&dir), 300);
 }
 
 #[test]

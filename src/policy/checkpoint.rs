@@ -14,6 +14,8 @@ use crate::config::GaitConfig;
 pub const MODEL_FILE: &str = "model.safetensors";
 pub const META_FILE: &str = "checkpoint.json";
 pub const FORMAT_VERSION: u32 = 1;
+/// Present while a trainer's save is under way or was interrupted (`train::run_dir`).
+pub const PENDING_SAVE_FILE: &str = "save-pending.json";
 
 /// `checkpoint.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -82,6 +84,10 @@ pub enum CheckpointError {
         expected: u32,
         found: u32,
     },
+    #[error(
+        "{0} is in the middle of a save (or one was interrupted): try again, or `gaitscope train --resume` it to complete the save"
+    )]
+    SavePending(PathBuf),
     #[error("{path} is not a readable safetensors file: {reason}")]
     BadWeights { path: PathBuf, reason: String },
     #[error("checkpoint {dir}: tensor '{name}' is missing from model.safetensors")]
@@ -250,16 +256,11 @@ impl SacModel {
             .collect()
     }
 
-    /// Writes `model.safetensors`, then `checkpoint.json`, each atomically.
-    pub fn save(
+    /// The bytes of `model.safetensors` and the `checkpoint.json` that describes them.
+    pub fn checkpoint_bytes(
         &self,
-        dir: &Path,
         record: &TrainingRecord,
-    ) -> Result<CheckpointMeta, CheckpointError> {
-        std::fs::create_dir_all(dir).map_err(|source| CheckpointError::Write {
-            path: dir.to_owned(),
-            source,
-        })?;
+    ) -> Result<(Vec<u8>, CheckpointMeta), CheckpointError> {
         let bytes = safetensors_bytes(self.all_params().map(|(n, v)| (n, v.as_tensor())))?;
         let meta = CheckpointMeta {
             format_version: FORMAT_VERSION,
@@ -275,12 +276,23 @@ impl SacModel {
             model_crc32: crc32fast::hash(&bytes),
             imported_from: record.imported_from.clone(),
         };
-        write_atomic(&dir.join(MODEL_FILE), &bytes)?;
-        let json = serde_json::to_vec_pretty(&meta).map_err(|e| CheckpointError::BadMeta {
-            path: dir.join(META_FILE),
-            reason: e.to_string(),
+        Ok((bytes, meta))
+    }
+
+    /// Writes `model.safetensors`, then `checkpoint.json`, each atomically (a trainer saves
+    /// them as one set with the rest of its run instead: `train::run_dir`).
+    pub fn save(
+        &self,
+        dir: &Path,
+        record: &TrainingRecord,
+    ) -> Result<CheckpointMeta, CheckpointError> {
+        std::fs::create_dir_all(dir).map_err(|source| CheckpointError::Write {
+            path: dir.to_owned(),
+            source,
         })?;
-        write_atomic(&dir.join(META_FILE), &json)?;
+        let (bytes, meta) = self.checkpoint_bytes(record)?;
+        write_atomic(&dir.join(MODEL_FILE), &bytes)?;
+        write_atomic(&dir.join(META_FILE), &meta_json(dir, &meta)?)?;
         Ok(meta)
     }
 
@@ -317,6 +329,9 @@ impl SacModel {
         })?;
         let found = crc32fast::hash(&bytes);
         if found != meta.model_crc32 {
+            if dir.join(PENDING_SAVE_FILE).exists() {
+                return Err(CheckpointError::SavePending(dir.to_owned()));
+            }
             return Err(CheckpointError::CrcMismatch {
                 path,
                 expected: meta.model_crc32,
@@ -349,6 +364,14 @@ fn describe_shape_difference(
         "it lists '{name}' as {:?}, its net config implies {shape:?}",
         listed[name]
     )
+}
+
+/// `checkpoint.json`'s bytes (`dir` only names the file in an error).
+pub fn meta_json(dir: &Path, meta: &CheckpointMeta) -> Result<Vec<u8>, CheckpointError> {
+    serde_json::to_vec_pretty(meta).map_err(|e| CheckpointError::BadMeta {
+        path: dir.join(META_FILE),
+        reason: e.to_string(),
+    })
 }
 
 /// Reads and parses `checkpoint.json`.

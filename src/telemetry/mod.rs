@@ -18,7 +18,7 @@
 //! | `{root}/actions/commanded`, `{root}/actions/applied` | Scalars × 8 | per step |
 //! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
-//! | `{root}/gait/{leg}` | StateChange: a stance state named by the leg's damage while its foot touches the floor, null (a gap) in swing; StateConfiguration (colours) static | on changes |
+//! | `{root}/gait/{leg}` | StateChange: a stance state named by the leg's damage while its foot touches the floor, an empty state (a gap) in swing; StateConfiguration (colours) static | on changes |
 //! | `{root}/latent/z` | Scalars × 32 | per step (encoder policies) |
 //! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point, large; episode every 5th step), coloured by triggered joints | with `probe.json` |
 //! | `{root}/latent/pca3`, `{root}/latent/pca3_trail` | Points3D, the same in the first three PCA axes | with `probe.json` |
@@ -53,6 +53,9 @@ pub const GAIT_STATES: [&str; 3] = [
     "stance (triggered)",
     "stance (manual)",
 ];
+/// Swing: an empty state, which the state view draws as a gap. Not a null: the state column is
+/// non-nullable, and nulls made every recording fail `rerun rrd verify`.
+pub const GAIT_SWING: &str = "";
 
 /// The time-series entities under a lane's root (what [`AntLogger::log_series_gap`] breaks).
 pub const SERIES_ENTITIES: [&str; 11] = [
@@ -411,7 +414,7 @@ pub struct AntLogger {
     /// Where this model's world is drawn, so side-by-side Ants do not overlap.
     world_offset: [f32; 3],
     /// Each leg's last logged gait state (`Some(None)`: swing), so only changes are logged.
-    gait_states: [Option<Option<&'static str>>; crate::env::N_LEGS],
+    gait_states: [Option<&'static str>; crate::env::N_LEGS],
 }
 
 /// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
@@ -526,7 +529,8 @@ impl AntLogger {
                 &rerun::Transform3D::from_translation(self.world_offset),
             )?;
         }
-        // Leg capsules: shape and names once; poses and colours per step.
+        // Leg capsules: shape and names once; poses and colours per step only (static colours
+        // would hide every per-step colour: in Rerun static data wins).
         rec.log_static(
             self.path("world/legs").as_str(),
             &rerun::Capsules3D::from_lengths_and_radii(
@@ -534,8 +538,7 @@ impl AntLogger {
                 self.capsules.iter().map(|c| c.radius),
             )
             .with_labels(self.capsules.iter().map(|c| c.name.clone()))
-            .with_show_labels(false)
-            .with_colors(self.capsules.iter().map(|c| color(c.rgba))),
+            .with_show_labels(false),
         )?;
         if let Some((_, radius)) = self.torso {
             rec.log_static(
@@ -802,10 +805,10 @@ impl AntLogger {
             &scalars(&out.applied_action),
         )?;
         // Gait diagram: per leg a state lane, "stance" states named by the leg's damage while the
-        // foot is on the floor, a gap (null state) while it swings; logged on changes only.
+        // foot is on the floor, a gap (an empty state) while it swings; logged on changes only.
         let contacts = env.foot_contacts();
         for (leg, name) in env.leg_names().iter().enumerate() {
-            let state = contacts[leg].then(|| {
+            let state = if contacts[leg] {
                 let joints = (0..N_ACTUATORS).filter(|&i| env.leg_of_actuator()[i] == leg);
                 let states: Vec<JointState> = joints.map(|i| damage.joint_state(i)).collect();
                 if states.contains(&JointState::Triggered) {
@@ -815,11 +818,13 @@ impl AntLogger {
                 } else {
                     GAIT_STATES[0]
                 }
-            });
+            } else {
+                GAIT_SWING
+            };
             if self.gait_states[leg] != Some(state) {
                 self.rec.log(
                     self.path(&format!("gait/{name}")).as_str(),
-                    &rerun::StateChange::new().with_state_opt([state]),
+                    &rerun::StateChange::single(state),
                 )?;
                 self.gait_states[leg] = Some(state);
             }

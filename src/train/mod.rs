@@ -3,13 +3,17 @@
 //!
 //! A run folder holds the checkpoint (`model.safetensors`, `checkpoint.json`), the optimiser and
 //! RNG state for `--resume` (`train_state.json`, `train_state.safetensors`), the replay buffer
-//! (`replay.bin`, so a resumed run continues with the same data; git-ignored) and the metrics
-//! (`metrics.jsonl`, CleanRL-style names).
+//! (`replay.bin`, so a resumed run continues with the same data; git-ignored, and with
+//! `--replay-dir` kept in another folder) and the metrics (`metrics.jsonl`, CleanRL-style names).
+//! Each checkpoint lands as one set under the folder's lock ([`run_dir`]). A resume that finds no
+//! buffer refills one with the current policy before it updates again: updating from a few
+//! hundred fresh transitions wrecked two of our runs.
 
 pub mod adam;
 pub mod curves;
 pub mod fused;
 pub mod replay;
+pub mod run_dir;
 pub mod sac;
 
 use candle_core::{Device, Tensor};
@@ -34,12 +38,19 @@ use crate::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
 use crate::window::ContextWindow;
 use adam::Adam;
 use replay::{Batch, ReplayBuffer, Transition};
+use run_dir::{Place, Recovery, RunDir, SaveStage};
 use sac::{SacLearner, UpdatePath, UpdateStats};
 
 pub const STATE_FILE: &str = "train_state.json";
 pub const OPTIMIZER_FILE: &str = "train_state.safetensors";
 pub const REPLAY_FILE: &str = "replay.bin";
 pub const METRICS_FILE: &str = "metrics.jsonl";
+/// Transitions a buffer-less resume collects before updating (`--refill`'s default).
+pub const DEFAULT_REFILL: usize = 50_000;
+/// The least `--refill` accepts: below it SAC samples the same few episodes over and over.
+pub const MIN_REFILL: usize = 10_000;
+/// Largest replay buffer a run may ask for (5M transitions of the Ant: ~1.4 GB).
+pub const MAX_BUFFER_SIZE: usize = 5_000_000;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -58,8 +69,12 @@ pub enum TrainError {
     },
     #[error("invalid training options: {0}")]
     Options(String),
-    #[error("training diverged at step {step}: {what} is not finite")]
-    Diverged { step: u64, what: &'static str },
+    #[error(
+        "training diverged at step {step}: {what} is not finite; nothing was saved, the last good checkpoint stands"
+    )]
+    Diverged { step: u64, what: String },
+    #[error(transparent)]
+    RunDir(#[from] run_dir::RunDirError),
 }
 
 /// What a training run needs; everything else derives from the seed.
@@ -83,6 +98,12 @@ pub struct TrainOptions {
     pub update: UpdatePath,
     /// Threads per fused update (1: the training thread alone). The results do not depend on it.
     pub threads: usize,
+    /// Where `replay.bin` lives (`None`: the run folder; a resume also finds the folder the
+    /// run recorded).
+    pub replay_dir: Option<PathBuf>,
+    /// A resume without its buffer collects min(buffer size, steps done, this) transitions with
+    /// the current policy before the next update (at least [`MIN_REFILL`]).
+    pub refill: usize,
 }
 
 /// One env step as the trainer sees it.
@@ -151,6 +172,57 @@ struct TrainState {
     replay_saved: bool,
     /// Ties this state to the weights it was saved with.
     model_crc32: u32,
+    /// Ties it to its optimiser file and buffer (absent in runs saved before these were kept).
+    #[serde(default)]
+    optimizer_crc32: Option<u32>,
+    #[serde(default)]
+    replay_crc32: Option<u32>,
+    /// The `--replay-dir` the buffer was saved in (absent: the run folder).
+    #[serde(default)]
+    replay_dir: Option<PathBuf>,
+    /// Every resume of this run, in order.
+    #[serde(default)]
+    resumes: Vec<ResumeRecord>,
+}
+
+/// Where a resumed run's replay buffer came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BufferSource {
+    /// `replay.bin` was found and matched its checksum.
+    Restored,
+    /// No (or too small a) buffer: the current policy collected one before updates resumed.
+    Refilled,
+}
+
+/// One resume, as `train_state.json` and `metrics.jsonl` record it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ResumeRecord {
+    /// The step the run resumed at.
+    pub step: u64,
+    pub buffer: BufferSource,
+    /// Transitions read back from `replay.bin`.
+    pub restored_transitions: usize,
+    /// Transitions collected by the current policy (sampled actions, no updates) before the
+    /// first update; they do not count as training steps.
+    pub refill_transitions: usize,
+    /// Episodes (whole or partial) the refill stepped through.
+    pub refill_episodes: u64,
+}
+
+/// The resumes a run folder records (`train_state.json`; empty for runs that never resumed or
+/// were saved before resumes were recorded).
+pub fn read_resumes(dir: &Path) -> Result<Vec<ResumeRecord>, TrainError> {
+    let path = dir.join(STATE_FILE);
+    let text = std::fs::read_to_string(&path).map_err(|e| TrainError::State {
+        path: path.clone(),
+        reason: format!("cannot read: {e}"),
+    })?;
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::State {
+        path,
+        reason: e.to_string(),
+    })?;
+    Ok(state.resumes)
 }
 
 /// How a run ended.
@@ -160,6 +232,8 @@ pub struct TrainSummary {
     pub episodes_done: u64,
     pub wall_time_s: f64,
     pub interrupted: bool,
+    /// Whether this invocation saved a checkpoint (not when stopped during a refill).
+    pub saved: bool,
     /// Env steps per second over this invocation, warm-up included.
     pub steps_per_s: f64,
     /// Env steps per second once every step also runs a gradient update.
@@ -190,18 +264,38 @@ pub fn check_ant(opts: &TrainOptions) -> Result<(), TrainError> {
 /// The training loop, for any [`Task`].
 pub fn train(
     task: &mut impl Task,
+    opts: TrainOptions,
+    resume: bool,
+    stop: Arc<AtomicBool>,
+) -> Result<TrainSummary, TrainError> {
+    train_with_save_hook(task, opts, resume, stop, &mut |_| Ok(()))
+}
+
+/// [`train`] with a hook at every stage of every checkpoint save: the fault-injection tests
+/// end a save there, as a kill would.
+pub fn train_with_save_hook(
+    task: &mut impl Task,
     mut opts: TrainOptions,
     resume: bool,
     stop: Arc<AtomicBool>,
+    save_hook: &mut dyn FnMut(SaveStage) -> std::io::Result<()>,
 ) -> Result<TrainSummary, TrainError> {
     let device = Device::Cpu;
     let started = Instant::now();
 
     // --- setup: fresh or resumed -----------------------------------------------------------
-    let (mut learner, mut state, mut replay) = if resume {
-        resume_run(&mut opts, &device)?
+    let (run, mut learner, mut state, mut replay, resumed) = if resume {
+        let r = resume_run(&mut opts, &device)?;
+        (r.run, r.learner, r.state, r.replay, Some(r.record))
     } else {
         validate_fresh(&opts, task)?;
+        let replay_dir = opts.replay_dir.clone().unwrap_or_else(|| opts.out.clone());
+        let run = RunDir::lock(&opts.out, &replay_dir)?;
+        // A fresh run that was killed during its first save may have left staged files.
+        run.recover()?;
+        if checkpoint::read_meta(&opts.out).is_ok() {
+            return Err(already_a_run(&opts.out));
+        }
         let model = SacModel::new(opts.net.clone(), opts.sac.initial_alpha, opts.seed, &device)?;
         let learner = SacLearner::new(model, opts.sac.clone(), device.clone());
         let state = TrainState {
@@ -213,40 +307,90 @@ pub fn train(
             update_rng: ChaCha8Rng::seed_from_u64(opts.seed ^ 0xA5A5_0002),
             replay_saved: false,
             model_crc32: 0,
+            optimizer_crc32: None,
+            replay_crc32: None,
+            replay_dir: (replay_dir != opts.out).then_some(replay_dir),
+            resumes: Vec::new(),
         };
-        let net = &opts.net;
-        let window_len = if net.encoder.uses_window() {
-            net.context_len
-        } else {
-            0
-        };
-        let replay = ReplayBuffer::new(opts.sac.buffer_size, net.obs_dim, net.act_dim, window_len);
-        std::fs::create_dir_all(&opts.out).map_err(|source| TrainError::Io {
-            path: opts.out.clone(),
-            source,
-        })?;
+        let replay = new_replay(&opts);
         truncate_metrics(&opts.out, 0)?;
-        (learner, state, replay)
+        (run, learner, state, replay, None)
     };
     learner.set_update_path(opts.update)?;
     learner.set_threads(opts.threads)?;
     let net = opts.net.clone();
     let mut metrics = MetricsLog::open(&opts.out)?;
-    let progress = progress_bar(&opts, state.steps_done);
 
     // A resumed run restarts the episode it was in, from a seed derived from the step count.
-    let mut obs = task.reset_with_seed(
-        opts.seed
-            .wrapping_add(state.steps_done.wrapping_mul(0x9E37)),
+    let mut episode = Episode::new(
+        &net,
+        task.reset_with_seed(
+            opts.seed
+                .wrapping_add(state.steps_done.wrapping_mul(0x9E37)),
+        ),
     );
-    let mut window = ContextWindow::with_dims(net.context_len, net.obs_dim, net.act_dim);
-    let mut encoder_window = vec![0f32; net.context_len * net.entry_dim()];
-    let (mut t_in_episode, mut episode_return) = (0usize, 0.0);
+    let start_step = state.steps_done;
+    let wall_before = state.wall_time_s;
+
+    // --- refill: a resume without its buffer collects one before it updates again ------------
+    if let Some(mut record) = resumed {
+        if record.buffer == BufferSource::Refilled {
+            let target = record.refill_transitions;
+            record.refill_transitions = 0;
+            let bar = refill_bar(&opts, target);
+            eprintln!(
+                "refilling the replay buffer: {} transitions from the current policy before updates resume (step {})",
+                target - replay.len(),
+                state.steps_done
+            );
+            while replay.len() < target {
+                if stop.load(Ordering::Relaxed) {
+                    eprintln!(
+                        "interrupted during the refill: nothing saved; the checkpoint of step {} stands",
+                        state.steps_done
+                    );
+                    return Ok(TrainSummary {
+                        steps_done: state.steps_done,
+                        episodes_done: state.episodes_done,
+                        wall_time_s: state.wall_time_s,
+                        interrupted: true,
+                        saved: false,
+                        steps_per_s: 0.0,
+                        learning_steps_per_s: None,
+                    });
+                }
+                let warm_up = state.steps_done < opts.sac.learning_starts as u64;
+                let (_, ended) = collect_step(
+                    task,
+                    &mut learner,
+                    &net,
+                    warm_up,
+                    &mut state.action_rng,
+                    &mut episode,
+                    &mut replay,
+                )?;
+                record.refill_transitions += 1;
+                record.refill_episodes += u64::from(ended.is_some());
+                if let Some(bar) = &bar {
+                    bar.set_position(replay.len() as u64);
+                }
+            }
+            record.refill_episodes += u64::from(episode.t > 0);
+            if let Some(bar) = bar {
+                bar.finish_and_clear();
+            }
+        }
+        metrics.write(&ResumeMetrics {
+            global_step: state.steps_done,
+            resume: record.clone(),
+        })?;
+        state.resumes.push(record);
+    }
+
+    let progress = progress_bar(&opts, state.steps_done);
     let mut recent = RecentEpisodes::new(20);
     let mut batch = Batch::default();
     let mut last_stats = UpdateStats::default();
-    let start_step = state.steps_done;
-    let wall_before = state.wall_time_s;
     let mut interrupted = false;
     let mut learning_started: Option<(u64, Instant)> = None;
 
@@ -256,60 +400,30 @@ pub fn train(
             interrupted = true;
             break;
         }
-        let global_step = state.steps_done;
 
-        // Act: uniform warm-up, then a squashed-Gaussian sample from the actor.
-        let action: Vec<f64> = if global_step < opts.sac.learning_starts as u64 {
-            (0..net.act_dim)
-                .map(|_| state.action_rng.random_range(-1.0..=1.0))
-                .collect()
-        } else {
-            let obs32: Vec<f32> = obs.iter().map(|&v| v as f32).collect();
-            let noise: Vec<f32> = (0..net.act_dim)
-                .map(|_| state.action_rng.sample::<f32, _>(StandardNormal))
-                .collect();
-            let window_arg = if net.encoder.uses_window() {
-                encoder_window.copy_from_slice(window.as_slice());
-                Some(&encoder_window[..])
-            } else {
-                None
-            };
-            learner.explore(&obs32, window_arg, &noise)?
-        };
-
-        // Step the env and store the transition.
-        let step = task.step(&action)?;
-        replay.push(Transition {
-            obs: &obs,
-            action: &action,
-            reward: step.reward,
-            next_obs: &step.obs,
-            terminated: step.terminated,
-            truncated: step.truncated,
-            t_in_episode,
-        });
-        window.push(&obs, &action);
-        episode_return += step.reward;
+        // Act (uniform warm-up, then a squashed-Gaussian sample), step, store the transition.
+        let warm_up = state.steps_done < opts.sac.learning_starts as u64;
+        let (step, ended) = collect_step(
+            task,
+            &mut learner,
+            &net,
+            warm_up,
+            &mut state.action_rng,
+            &mut episode,
+            &mut replay,
+        )?;
         state.steps_done += 1;
-
-        if step.terminated || step.truncated {
+        if let Some(end) = ended {
             state.episodes_done += 1;
-            recent.push(episode_return, step.success);
+            recent.push(end.episodic_return, step.success);
             metrics.write(&EpisodeMetrics {
                 global_step: state.steps_done,
-                episodic_return: episode_return,
-                episodic_length: t_in_episode + 1,
+                episodic_return: end.episodic_return,
+                episodic_length: end.length,
                 success: step.success,
                 triggered_joints: step.triggered_joints,
                 condition: step.condition,
             })?;
-            obs = task.reset();
-            window.clear();
-            t_in_episode = 0;
-            episode_return = 0.0;
-        } else {
-            obs = step.obs;
-            t_in_episode += 1;
         }
 
         // Learn: one gradient step per env step once warm-up is over.
@@ -330,7 +444,7 @@ pub fn train(
                 if !v.is_finite() {
                     return Err(TrainError::Diverged {
                         step: state.steps_done,
-                        what,
+                        what: what.to_string(),
                     });
                 }
             }
@@ -357,7 +471,7 @@ pub fn train(
             && state.steps_done < opts.total_steps
         {
             state.wall_time_s = wall_before + elapsed;
-            save_run(&opts, &mut learner, &mut state, &replay)?;
+            save_run(&run, &opts, &mut learner, &mut state, &replay, save_hook)?;
         }
     }
 
@@ -366,7 +480,7 @@ pub fn train(
         .map(|(from, at)| (state.steps_done - from) as f64 / at.elapsed().as_secs_f64().max(1e-9));
     let elapsed = started.elapsed().as_secs_f64();
     state.wall_time_s = wall_before + elapsed;
-    save_run(&opts, &mut learner, &mut state, &replay)?;
+    save_run(&run, &opts, &mut learner, &mut state, &replay, save_hook)?;
     if let Some(bar) = progress {
         bar.finish_with_message(
             recent.describe((state.steps_done - start_step) as f64 / elapsed.max(1e-9)),
@@ -377,49 +491,181 @@ pub fn train(
         episodes_done: state.episodes_done,
         wall_time_s: state.wall_time_s,
         interrupted,
+        saved: true,
         steps_per_s: (state.steps_done - start_step) as f64 / elapsed.max(1e-9),
         learning_steps_per_s,
     })
 }
 
+/// The episode the trainer is in: the observation, the context window, the running return.
+struct Episode {
+    obs: Vec<f64>,
+    window: ContextWindow,
+    encoder_window: Vec<f32>,
+    t: usize,
+    episodic_return: f64,
+}
+
+/// How an episode ended, for the metrics.
+struct EpisodeEnd {
+    episodic_return: f64,
+    length: usize,
+}
+
+impl Episode {
+    fn new(net: &NetConfig, obs: Vec<f64>) -> Self {
+        Self {
+            obs,
+            window: ContextWindow::with_dims(net.context_len, net.obs_dim, net.act_dim),
+            encoder_window: vec![0f32; net.context_len * net.entry_dim()],
+            t: 0,
+            episodic_return: 0.0,
+        }
+    }
+}
+
+/// One step of data collection, shared by training and the refill: act (uniform in warm-up, else
+/// a sample from the actor), step the task, store the transition, reset at an episode's end.
+fn collect_step(
+    task: &mut impl Task,
+    learner: &mut SacLearner,
+    net: &NetConfig,
+    warm_up: bool,
+    rng: &mut ChaCha8Rng,
+    ep: &mut Episode,
+    replay: &mut ReplayBuffer,
+) -> Result<(TaskStep, Option<EpisodeEnd>), TrainError> {
+    let action: Vec<f64> = if warm_up {
+        (0..net.act_dim)
+            .map(|_| rng.random_range(-1.0..=1.0))
+            .collect()
+    } else {
+        let obs32: Vec<f32> = ep.obs.iter().map(|&v| v as f32).collect();
+        let noise: Vec<f32> = (0..net.act_dim)
+            .map(|_| rng.sample::<f32, _>(StandardNormal))
+            .collect();
+        let window_arg = if net.encoder.uses_window() {
+            ep.encoder_window.copy_from_slice(ep.window.as_slice());
+            Some(&ep.encoder_window[..])
+        } else {
+            None
+        };
+        learner.explore(&obs32, window_arg, &noise)?
+    };
+    let mut step = task.step(&action)?;
+    replay.push(Transition {
+        obs: &ep.obs,
+        action: &action,
+        reward: step.reward,
+        next_obs: &step.obs,
+        terminated: step.terminated,
+        truncated: step.truncated,
+        t_in_episode: ep.t,
+    });
+    ep.window.push(&ep.obs, &action);
+    ep.episodic_return += step.reward;
+    if step.terminated || step.truncated {
+        let end = EpisodeEnd {
+            episodic_return: ep.episodic_return,
+            length: ep.t + 1,
+        };
+        ep.obs = task.reset();
+        ep.window.clear();
+        ep.t = 0;
+        ep.episodic_return = 0.0;
+        Ok((step, Some(end)))
+    } else {
+        ep.obs = std::mem::take(&mut step.obs);
+        ep.t += 1;
+        Ok((step, None))
+    }
+}
+
+fn new_replay(opts: &TrainOptions) -> ReplayBuffer {
+    let net = &opts.net;
+    let window_len = if net.encoder.uses_window() {
+        net.context_len
+    } else {
+        0
+    };
+    ReplayBuffer::new(opts.sac.buffer_size, net.obs_dim, net.act_dim, window_len)
+}
+
+fn already_a_run(dir: &Path) -> TrainError {
+    TrainError::Options(format!(
+        "{} already holds a checkpoint; use --resume {} to continue it, or another --out",
+        dir.display(),
+        dir.display()
+    ))
+}
+
 fn validate_fresh(opts: &TrainOptions, task: &impl Task) -> Result<(), TrainError> {
-    let bad = |m: String| Err(TrainError::Options(m));
     if (opts.net.obs_dim, opts.net.act_dim) != (task.obs_dim(), task.act_dim()) {
-        return bad(format!(
+        return Err(TrainError::Options(format!(
             "net dims {}/{} do not match the task's {}/{}",
             opts.net.obs_dim,
             opts.net.act_dim,
             task.obs_dim(),
             task.act_dim()
-        ));
+        )));
     }
+    validate_options(opts)?;
+    if checkpoint::read_meta(&opts.out).is_ok() {
+        return Err(already_a_run(&opts.out));
+    }
+    Ok(())
+}
+
+/// The ranges every run must be in, fresh or resumed (a hand-edited `checkpoint.json` included).
+fn validate_options(opts: &TrainOptions) -> Result<(), TrainError> {
+    let bad = |m: String| Err(TrainError::Options(m));
     if opts.total_steps == 0 || opts.checkpoint_every == 0 || opts.log_every == 0 {
         return bad(
             "--steps, the checkpoint interval and the log interval must be at least 1".into(),
         );
     }
-    if opts.sac.batch_size == 0 || opts.sac.buffer_size == 0 {
+    let sac = &opts.sac;
+    if sac.batch_size == 0 || sac.buffer_size == 0 {
         return bad("batch size and buffer size must be at least 1".into());
     }
-    if opts.net.context_len == 0 || opts.net.z_dim == 0 || opts.net.hidden.contains(&0) {
+    if sac.buffer_size > MAX_BUFFER_SIZE {
+        return bad(format!(
+            "buffer size {} is above the limit of {MAX_BUFFER_SIZE} transitions",
+            sac.buffer_size
+        ));
+    }
+    if sac.batch_size > 65_536 {
+        return bad(format!("batch size {} is above 65536", sac.batch_size));
+    }
+    let net = &opts.net;
+    if net.context_len == 0 || net.z_dim == 0 || net.hidden.contains(&0) {
         return bad("context length, z size and hidden sizes must be at least 1".into());
     }
-    if checkpoint::read_meta(&opts.out).is_ok() {
+    if net.context_len > 1024 || net.z_dim > 4096 || net.hidden.iter().any(|&h| h > 65_536) {
         return bad(format!(
-            "{} already holds a checkpoint; use --resume {} to continue it, or another --out",
-            opts.out.display(),
-            opts.out.display()
+            "network too large: context length {} (at most 1024), z size {} (at most 4096), hidden {:?} (each at most 65536)",
+            net.context_len, net.z_dim, net.hidden
+        ));
+    }
+    if opts.refill < MIN_REFILL {
+        return bad(format!(
+            "--refill {} is below {MIN_REFILL}: a resumed run would update from a near-empty buffer",
+            opts.refill
         ));
     }
     Ok(())
 }
 
-/// Writes weights, optimiser state, RNGs and (optionally) the replay buffer.
+/// Saves one generation (weights, checkpoint.json, optimiser, train state, replay buffer) as a
+/// set, after checking that every number in it is finite: a diverged run never replaces the
+/// last good checkpoint.
 fn save_run(
+    run: &RunDir,
     opts: &TrainOptions,
     learner: &mut SacLearner,
     state: &mut TrainState,
     replay: &ReplayBuffer,
+    hook: &mut dyn FnMut(SaveStage) -> std::io::Result<()>,
 ) -> Result<(), TrainError> {
     let record = TrainingRecord {
         env: opts.env.clone(),
@@ -431,26 +677,41 @@ fn save_run(
         imported_from: None,
     };
     learner.sync_model()?;
-    // Optimiser state and replay first, JSON state last: a crash in between leaves the previous
-    // train_state.json, whose CRC no longer matches the new weights, and resume says so.
+    let diverged = |what: String| TrainError::Diverged {
+        step: state.steps_done,
+        what,
+    };
+    for (name, var) in learner.model.all_params() {
+        let values = var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+        if values.iter().any(|v| !v.is_finite()) {
+            return Err(diverged(format!("weight tensor '{name}'")));
+        }
+    }
     let optimizers = [&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt];
+    for (group, opt) in ["actor", "critic", "alpha"].iter().zip(&optimizers) {
+        if opt
+            .moments()
+            .any(|(m, v)| m.iter().chain(v).any(|x| !x.is_finite()))
+        {
+            return Err(diverged(format!("the {group} optimiser's state")));
+        }
+    }
+    let (model_bytes, meta) = learner.model.checkpoint_bytes(&record)?;
+    let meta_json = checkpoint::meta_json(&opts.out, &meta)?;
     let tensors = optimizer_tensors(&optimizers)?;
-    write_atomic(
-        &opts.out.join(OPTIMIZER_FILE),
-        &safetensors_bytes(tensors.iter().map(|(n, t)| (n.as_str(), t)))?,
-    )?;
-    if opts.save_replay {
-        let path = opts.out.join(REPLAY_FILE);
+    let optimizer_bytes = safetensors_bytes(tensors.iter().map(|(n, t)| (n.as_str(), t)))?;
+    let replay_bytes = if opts.save_replay {
         let mut bytes = Vec::new();
         replay
             .write_to(&mut bytes)
             .map_err(|source| TrainError::Io {
-                path: path.clone(),
+                path: run.path(Place::Replay, REPLAY_FILE),
                 source,
             })?;
-        write_atomic(&path, &bytes)?;
-    }
-    let meta = learner.model.save(&opts.out, &record)?;
+        Some(bytes)
+    } else {
+        None
+    };
     state.adam_steps = [
         learner.actor_opt.t,
         learner.critic_opt.t,
@@ -458,12 +719,25 @@ fn save_run(
     ];
     state.replay_saved = opts.save_replay;
     state.model_crc32 = meta.model_crc32;
+    state.optimizer_crc32 = Some(crc32fast::hash(&optimizer_bytes));
+    state.replay_crc32 = replay_bytes.as_deref().map(crc32fast::hash);
     let path = opts.out.join(STATE_FILE);
-    let json = serde_json::to_vec_pretty(state).map_err(|e| TrainError::State {
+    let state_json = serde_json::to_vec_pretty(state).map_err(|e| TrainError::State {
         path: path.clone(),
         reason: e.to_string(),
     })?;
-    write_atomic(&path, &json)?;
+    let mut files: Vec<(Place, &str, &[u8])> = vec![
+        (Place::Run, checkpoint::MODEL_FILE, &model_bytes),
+        (Place::Run, OPTIMIZER_FILE, &optimizer_bytes),
+    ];
+    if let Some(bytes) = &replay_bytes {
+        files.push((Place::Replay, REPLAY_FILE, bytes));
+    }
+    // checkpoint.json last: a reader between two renames sees the old JSON, whose CRC refuses
+    // the new weights, rather than new JSON over old weights.
+    files.push((Place::Run, STATE_FILE, &state_json));
+    files.push((Place::Run, checkpoint::META_FILE, &meta_json));
+    run.commit_with(state.steps_done, &files, hook)?;
     Ok(())
 }
 
@@ -484,43 +758,141 @@ fn optimizer_tensors(optimizers: &[&Adam; 3]) -> Result<Vec<(String, Tensor)>, T
     Ok(out)
 }
 
-fn resume_run(
-    opts: &mut TrainOptions,
-    device: &Device,
-) -> Result<(SacLearner, TrainState, ReplayBuffer), TrainError> {
+/// A run folder opened for `--resume`: locked, any interrupted save settled, everything loaded.
+struct Resumed {
+    run: RunDir,
+    learner: SacLearner,
+    state: TrainState,
+    replay: ReplayBuffer,
+    /// `refill_transitions` holds the buffer size to reach before updating (when refilled).
+    record: ResumeRecord,
+}
+
+fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<Resumed, TrainError> {
     let dir = opts.out.clone();
-    let (learner, state, meta) = load_run(&dir, Some(opts.net.encoder), device)?;
-    // The run's own settings win over the command line's, except the total step count.
+    if !dir.is_dir() {
+        return Err(CheckpointError::NoSuchDir(dir).into());
+    }
+    // The buffer's folder: the command line's, else the one the run recorded, else the run's.
+    let replay_dir = opts
+        .replay_dir
+        .clone()
+        .or_else(|| recorded_replay_dir(&dir))
+        .unwrap_or_else(|| dir.clone());
+    let run = RunDir::lock(&dir, &replay_dir)?;
+    match run.recover()? {
+        Recovery::Clean => {}
+        Recovery::RolledBack { dropped } => eprintln!(
+            "note: dropped {dropped} staged files of a save that was interrupted before it completed; resuming from the last complete checkpoint"
+        ),
+        Recovery::RolledForward {
+            step,
+            missing_replay,
+        } => {
+            eprintln!("note: completed the checkpoint of step {step}, whose save was interrupted");
+            if let Some(path) = missing_replay {
+                eprintln!("note: its replay buffer {} is not here", path.display());
+            }
+        }
+    }
+    let (learner, mut state, meta) = load_run(&dir, Some(opts.net.encoder), device)?;
+    // The run's own settings win over the command line's, except the total step count, the
+    // replay folder and the refill size; a hand-edited checkpoint.json is checked like a fresh run.
     opts.net = meta.net.clone();
     opts.sac = meta.sac.clone();
     opts.env = meta.env.clone();
     opts.seed = meta.seed;
-    let net = &opts.net;
-    let window_len = if net.encoder.uses_window() {
-        net.context_len
-    } else {
-        0
-    };
-    let mut replay = ReplayBuffer::new(opts.sac.buffer_size, net.obs_dim, net.act_dim, window_len);
-    let path = dir.join(REPLAY_FILE);
-    if state.replay_saved && path.exists() {
-        let file = std::fs::File::open(&path).map_err(|e| TrainError::State {
-            path: path.clone(),
-            reason: format!("cannot open: {e}"),
-        })?;
-        replay
-            .read_from(&mut std::io::BufReader::new(file))
-            .map_err(|reason| TrainError::State { path, reason })?;
-    } else if state.replay_saved {
-        // replay.bin is git-ignored, so a fresh checkout resumes without it: the buffer refills
-        // from the current policy and updates wait until it holds `learning_starts` transitions.
+    validate_options(opts).map_err(|e| match e {
+        TrainError::Options(m) => TrainError::Options(format!(
+            "{}: {m}",
+            dir.join(checkpoint::META_FILE).display()
+        )),
+        e => e,
+    })?;
+    state.replay_dir = (replay_dir != dir).then(|| replay_dir.clone());
+    let mut replay = new_replay(opts);
+    let path = run.path(Place::Replay, REPLAY_FILE);
+    if state.replay_saved {
+        restore_replay(&path, state.replay_crc32, &mut replay)?;
+    }
+    // Updates must never start from a near-empty buffer: refill to this size first.
+    let floor = opts
+        .sac
+        .buffer_size
+        .min(usize::try_from(state.steps_done).unwrap_or(usize::MAX))
+        .min(opts.refill);
+    let refill = replay.len() < floor;
+    if refill && path.exists() {
         eprintln!(
-            "note: {} is missing; resuming with an empty replay buffer",
-            path.display()
+            "note: {} holds {} transitions, fewer than the {floor} a resume needs; refilling the rest",
+            path.display(),
+            replay.len()
         );
     }
+    let record = ResumeRecord {
+        step: state.steps_done,
+        buffer: if refill {
+            BufferSource::Refilled
+        } else {
+            BufferSource::Restored
+        },
+        restored_transitions: replay.len(),
+        refill_transitions: if refill { floor } else { 0 },
+        refill_episodes: 0,
+    };
     truncate_metrics(&dir, state.steps_done)?;
-    Ok((learner, state, replay))
+    Ok(Resumed {
+        run,
+        learner,
+        state,
+        replay,
+        record,
+    })
+}
+
+/// The replay folder a run recorded, if its state file can be read (before the lock is taken,
+/// so a torn or missing state only means "the run folder").
+fn recorded_replay_dir(dir: &Path) -> Option<PathBuf> {
+    let text = std::fs::read_to_string(dir.join(STATE_FILE)).ok()?;
+    serde_json::from_str::<TrainState>(&text).ok()?.replay_dir
+}
+
+/// Reads `replay.bin` into `replay` when it exists; a file that fails its checksum or holds a
+/// non-finite number is an error (delete it to refill), not a silent refill.
+fn restore_replay(
+    path: &Path,
+    crc32: Option<u32>,
+    replay: &mut ReplayBuffer,
+) -> Result<(), TrainError> {
+    let bytes = match std::fs::read(path) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            eprintln!(
+                "note: {} is missing (it is git-ignored; keep it with --replay-dir); the buffer will be refilled",
+                path.display()
+            );
+            return Ok(());
+        }
+        Err(e) => {
+            return Err(TrainError::State {
+                path: path.to_owned(),
+                reason: format!("cannot read: {e}"),
+            });
+        }
+    };
+    let refuse = |reason: String| TrainError::State {
+        path: path.to_owned(),
+        reason: format!("{reason}; delete it to resume with a refilled buffer"),
+    };
+    if let Some(expected) = crc32 {
+        let found = crc32fast::hash(&bytes);
+        if found != expected {
+            return Err(refuse(format!(
+                "CRC-32 {found:08x} does not match train_state.json's {expected:08x} (corrupt, or from another run or save)"
+            )));
+        }
+    }
+    replay.read_from(&mut bytes.as_slice()).map_err(refuse)
 }
 
 /// A run's learner as it was saved: weights, and the optimisers' moments and step counts.
@@ -555,6 +927,17 @@ fn load_run(
         path: opt_path.clone(),
         source,
     })?;
+    if let Some(expected) = state.optimizer_crc32 {
+        let found = crc32fast::hash(&bytes);
+        if found != expected {
+            return Err(TrainError::State {
+                path: opt_path,
+                reason: format!(
+                    "CRC-32 {found:08x} does not match train_state.json's {expected:08x}: this optimiser state belongs to another run or save"
+                ),
+            });
+        }
+    }
     let expected: BTreeMap<String, Vec<usize>> =
         optimizer_tensors(&[&learner.actor_opt, &learner.critic_opt, &learner.alpha_opt])?
             .into_iter()
@@ -586,22 +969,33 @@ fn load_run(
     Ok((learner, state, meta))
 }
 
-/// Drops metric lines logged after `steps_done` (work lost since the last checkpoint).
+/// Drops metric lines logged after `steps_done` (work lost since the last checkpoint), and says
+/// how many lines it dropped because they were not JSON with a step.
 fn truncate_metrics(dir: &Path, steps_done: u64) -> Result<(), TrainError> {
     let path = dir.join(METRICS_FILE);
     let Ok(text) = std::fs::read_to_string(&path) else {
         return Ok(());
     };
+    let mut corrupt = 0usize;
     let kept: String = text
         .lines()
         .filter(|line| {
-            serde_json::from_str::<serde_json::Value>(line)
+            let step = serde_json::from_str::<serde_json::Value>(line)
                 .ok()
-                .and_then(|v| v["global_step"].as_u64())
-                .is_some_and(|s| s <= steps_done)
+                .and_then(|v| v["global_step"].as_u64());
+            if step.is_none() && !line.trim().is_empty() {
+                corrupt += 1;
+            }
+            step.is_some_and(|s| s <= steps_done)
         })
         .map(|l| format!("{l}\n"))
         .collect();
+    if corrupt > 0 {
+        eprintln!(
+            "warning: {}: dropped {corrupt} line(s) that are not JSON metrics with a global_step",
+            path.display()
+        );
+    }
     write_atomic(&path, kept.as_bytes()).map_err(TrainError::from)
 }
 
@@ -618,6 +1012,12 @@ struct EpisodeMetrics {
     triggered_joints: usize,
     #[serde(rename = "charts/condition", skip_serializing_if = "Option::is_none")]
     condition: Option<Condition>,
+}
+
+#[derive(Serialize)]
+struct ResumeMetrics {
+    global_step: u64,
+    resume: ResumeRecord,
 }
 
 #[derive(Serialize)]
@@ -707,6 +1107,19 @@ fn progress_bar(opts: &TrainOptions, position: u64) -> Option<indicatif::Progres
     Some(bar)
 }
 
+fn refill_bar(opts: &TrainOptions, target: usize) -> Option<indicatif::ProgressBar> {
+    if !opts.progress_bar {
+        return None;
+    }
+    let bar = indicatif::ProgressBar::new(target as u64);
+    let style = indicatif::ProgressStyle::with_template(
+        "refill {bar:30} {pos}/{len} [{elapsed_precise} < {eta_precise}]",
+    )
+    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
+    bar.set_style(style);
+    Some(bar)
+}
+
 /// The paper's training defaults for the Ant.
 pub fn ant_options(
     encoder: EncoderKind,
@@ -727,5 +1140,330 @@ pub fn ant_options(
         progress_bar: true,
         update: UpdatePath::Fused,
         threads: 1,
+        replay_dir: None,
+        refill: DEFAULT_REFILL,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Observe s ~ U(−1, 1), act, earn −(a − s/2)²; eight steps an episode.
+    struct Toy {
+        rng: ChaCha8Rng,
+        s: f64,
+        t: usize,
+    }
+
+    impl Toy {
+        fn new() -> Self {
+            Self {
+                rng: ChaCha8Rng::seed_from_u64(0),
+                s: 0.0,
+                t: 0,
+            }
+        }
+    }
+
+    impl Task for Toy {
+        fn obs_dim(&self) -> usize {
+            1
+        }
+        fn act_dim(&self) -> usize {
+            1
+        }
+        fn reset_with_seed(&mut self, seed: u64) -> Vec<f64> {
+            self.rng = ChaCha8Rng::seed_from_u64(seed);
+            self.reset()
+        }
+        fn reset(&mut self) -> Vec<f64> {
+            self.t = 0;
+            self.s = self.rng.random_range(-1.0..1.0);
+            vec![self.s]
+        }
+        fn step(&mut self, action: &[f64]) -> Result<TaskStep, TrainError> {
+            let reward = -(action[0] - self.s / 2.0).powi(2);
+            self.t += 1;
+            self.s = self.rng.random_range(-1.0..1.0);
+            Ok(TaskStep {
+                obs: vec![self.s],
+                reward,
+                terminated: false,
+                truncated: self.t >= 8,
+                success: false,
+                triggered_joints: 0,
+                condition: None,
+            })
+        }
+    }
+
+    fn options(out: PathBuf, total_steps: u64) -> TrainOptions {
+        TrainOptions {
+            net: NetConfig {
+                encoder: EncoderKind::None,
+                obs_dim: 1,
+                act_dim: 1,
+                context_len: 4,
+                z_dim: 4,
+                hidden: vec![8, 8],
+                window_mlp_hidden: vec![8],
+                share_encoder: false,
+            },
+            sac: SacConfig {
+                batch_size: 16,
+                buffer_size: 20_000,
+                learning_starts: 50,
+                ..SacConfig::default()
+            },
+            env: GaitConfig::default(),
+            seed: 3,
+            total_steps,
+            out,
+            checkpoint_every: 100,
+            save_replay: true,
+            log_every: 50,
+            progress_bar: false,
+            update: UpdatePath::Fused,
+            threads: 1,
+            replay_dir: None,
+            refill: MIN_REFILL,
+        }
+    }
+
+    fn run(out: &Path, total: u64, resume: bool) -> Result<TrainSummary, TrainError> {
+        train(
+            &mut Toy::new(),
+            options(out.to_owned(), total),
+            resume,
+            Arc::new(AtomicBool::new(false)),
+        )
+    }
+
+    fn state_of(dir: &Path) -> TrainState {
+        serde_json::from_str(&std::fs::read_to_string(dir.join(STATE_FILE)).unwrap()).unwrap()
+    }
+
+    /// Every file of a run folder, by name.
+    fn snapshot(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.is_file())
+            .map(|p| {
+                let name = p.file_name().unwrap().to_string_lossy().into_owned();
+                (name, std::fs::read(&p).unwrap())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_resume_without_its_buffer_refills_before_any_update() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("run");
+        run(&out, 300, false).unwrap();
+        let before = state_of(&out);
+        // One update per step after warm-up: the gap is the warm-up, and stays so.
+        let gap = before.steps_done - before.adam_steps[1];
+        std::fs::remove_file(out.join(REPLAY_FILE)).unwrap();
+        run(&out, 400, true).unwrap();
+        let after = state_of(&out);
+        assert_eq!(after.steps_done, 400);
+        assert_eq!(
+            after.steps_done - after.adam_steps[1],
+            gap,
+            "the refill's steps must not update"
+        );
+        // The buffer was refilled to min(buffer 20000, steps 300, refill 10000) = 300.
+        assert_eq!(
+            after.resumes,
+            vec![ResumeRecord {
+                step: 300,
+                buffer: BufferSource::Refilled,
+                restored_transitions: 0,
+                refill_transitions: 300,
+                refill_episodes: 38,
+            }]
+        );
+        // The buffer holds the refill and the 100 new steps.
+        let mut replay = new_replay(&options(out.clone(), 0));
+        restore_replay(&out.join(REPLAY_FILE), after.replay_crc32, &mut replay).unwrap();
+        assert_eq!(replay.len(), 400);
+        let metrics = std::fs::read_to_string(out.join(METRICS_FILE)).unwrap();
+        let resume_line = metrics
+            .lines()
+            .find(|l| l.contains("\"resume\""))
+            .expect("metrics.jsonl records the resume");
+        let v: serde_json::Value = serde_json::from_str(resume_line).unwrap();
+        assert_eq!(v["global_step"], 300);
+        assert_eq!(v["resume"]["buffer"], "refilled");
+        assert_eq!(v["resume"]["refill_transitions"], 300);
+
+        // With its buffer, a resume restores it and refills nothing.
+        run(&out, 500, true).unwrap();
+        let last = state_of(&out).resumes.pop().unwrap();
+        assert_eq!(last.buffer, BufferSource::Restored);
+        assert_eq!(
+            (last.restored_transitions, last.refill_transitions),
+            (400, 0)
+        );
+    }
+
+    #[test]
+    fn a_kill_at_any_stage_of_a_save_resumes_one_consistent_generation() {
+        // Five files a save: weights, optimiser, replay, train state, checkpoint.json.
+        let n = 5;
+        let stages: Vec<SaveStage> = (0..n)
+            .map(SaveStage::Staged)
+            .chain([SaveStage::ManifestWritten])
+            .chain((0..n).map(SaveStage::Renamed))
+            .chain([SaveStage::Done])
+            .collect();
+        for (k, &kill_at) in stages.iter().enumerate() {
+            let tmp = tempfile::tempdir().unwrap();
+            let out = tmp.path().join("run");
+            run(&out, 200, false).unwrap();
+            let mut seen = Vec::new();
+            let killed = train_with_save_hook(
+                &mut Toy::new(),
+                options(out.clone(), 300),
+                true,
+                Arc::new(AtomicBool::new(false)),
+                &mut |stage| {
+                    seen.push(stage);
+                    if stage == kill_at {
+                        Err(std::io::Error::other("killed"))
+                    } else {
+                        Ok(())
+                    }
+                },
+            );
+            assert!(killed.is_err(), "{kill_at:?}");
+            assert_eq!(seen.len(), k + 1, "the hook saw every stage up to the kill");
+            // The next resume settles the folder and finds everything belonging together: its
+            // weights, optimiser and buffer all from one step.
+            run(&out, 300, true).unwrap_or_else(|e| panic!("resume after {kill_at:?}: {e}"));
+            let state = state_of(&out);
+            assert_eq!(state.steps_done, 300);
+            let resumed_from = state.resumes.last().unwrap();
+            let expected_step = if k < n { 200 } else { 300 };
+            assert_eq!(resumed_from.step, expected_step, "killed at {kill_at:?}");
+            assert_eq!(resumed_from.buffer, BufferSource::Restored, "{kill_at:?}");
+            assert_eq!(resumed_from.restored_transitions as u64, expected_step);
+            load_learner(&out, &Device::Cpu).unwrap();
+            assert!(!out.join(run_dir::PENDING_FILE).exists());
+            assert!(
+                snapshot(&out).keys().all(|name| !name.ends_with(".tmp")),
+                "nothing staged is left: {:?}",
+                snapshot(&out).keys()
+            );
+        }
+    }
+
+    #[test]
+    fn non_finite_weights_or_buffer_never_replace_the_last_good_checkpoint() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("run");
+        run(&out, 200, false).unwrap();
+        let good = snapshot(&out);
+
+        // A NaN weight: the save refuses, and every file is as it was.
+        let opts = options(out.clone(), 200);
+        let mut resumed = resume_run(&mut opts.clone(), &Device::Cpu).unwrap();
+        let (_, var) = resumed.learner.model.all_params().next().unwrap();
+        let poisoned = (var.as_tensor() * f64::NAN).unwrap();
+        var.set(&poisoned).unwrap();
+        let err = save_run(
+            &resumed.run,
+            &opts,
+            &mut resumed.learner,
+            &mut resumed.state,
+            &resumed.replay,
+            &mut |_| Ok(()),
+        )
+        .unwrap_err();
+        assert!(matches!(err, TrainError::Diverged { .. }), "{err}");
+        assert!(err.to_string().contains("last good checkpoint stands"));
+        drop(resumed);
+        let mut now = snapshot(&out);
+        now.remove(run_dir::LOCK_FILE);
+        let mut expected = good.clone();
+        expected.remove(run_dir::LOCK_FILE);
+        // resume_run rewrites metrics.jsonl (same lines) and nothing else.
+        assert_eq!(now, expected);
+
+        // A NaN in replay.bin: the checksum refuses it, and so would the finite check.
+        let path = out.join(REPLAY_FILE);
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[56..60].copy_from_slice(&f32::NAN.to_le_bytes());
+        std::fs::write(&path, &bytes).unwrap();
+        let err = run(&out, 300, true).unwrap_err().to_string();
+        assert!(err.contains("does not match train_state.json"), "{err}");
+        assert!(err.contains("delete it"), "{err}");
+        let mut replay = new_replay(&opts);
+        let err = restore_replay(&path, None, &mut replay)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("NaN"), "{err}");
+        assert_eq!(state_of(&out).steps_done, 200);
+    }
+
+    #[test]
+    fn a_second_trainer_on_one_folder_is_refused_and_readers_still_read() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("run");
+        run(&out, 100, false).unwrap();
+        let holder = RunDir::lock(&out, &out).unwrap();
+        let err = run(&out, 200, true).unwrap_err().to_string();
+        assert!(
+            err.contains(&format!("pid {}", std::process::id())),
+            "{err}"
+        );
+        load_learner(&out, &Device::Cpu).expect("readers take no lock");
+        drop(holder);
+        run(&out, 200, true).unwrap();
+    }
+
+    #[test]
+    fn a_resume_checks_hand_edited_settings_like_a_fresh_run() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("run");
+        run(&out, 100, false).unwrap();
+        let meta_path = out.join(checkpoint::META_FILE);
+        let original = std::fs::read_to_string(&meta_path).unwrap();
+        for (size, says) in [
+            (0u64, "at least 1"),
+            (1_000_000_000_000_000, "above the limit"),
+        ] {
+            let mut meta: serde_json::Value = serde_json::from_str(&original).unwrap();
+            meta["sac"]["buffer_size"] = size.into();
+            std::fs::write(&meta_path, meta.to_string()).unwrap();
+            let err = run(&out, 200, true).unwrap_err().to_string();
+            assert!(
+                err.contains("checkpoint.json") && err.contains(says),
+                "{err}"
+            );
+        }
+        std::fs::write(&meta_path, &original).unwrap();
+        run(&out, 200, true).unwrap();
+    }
+
+    #[test]
+    fn an_optimiser_file_from_another_run_is_refused() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+        run(&a, 100, false).unwrap();
+        let mut other = options(b.clone(), 150);
+        other.seed = 9;
+        train(
+            &mut Toy::new(),
+            other,
+            false,
+            Arc::new(AtomicBool::new(false)),
+        )
+        .unwrap();
+        std::fs::copy(b.join(OPTIMIZER_FILE), a.join(OPTIMIZER_FILE)).unwrap();
+        let err = run(&a, 200, true).unwrap_err().to_string();
+        assert!(err.contains("belongs to another run"), "{err}");
     }
 }

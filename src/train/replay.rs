@@ -261,6 +261,14 @@ impl ReplayBuffer {
         for (v, b) in self.t_in_episode.iter_mut().zip(bytes.chunks_exact(4)) {
             *v = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
         }
+        let non_finite = |v: &[f32]| v.iter().any(|x| !x.is_finite());
+        if non_finite(&self.obs)
+            || non_finite(&self.actions)
+            || non_finite(&self.rewards)
+            || non_finite(&self.next_obs)
+        {
+            return Err("holds a NaN or infinite value".into());
+        }
         self.len = len;
         self.pos = pos;
         Ok(())
