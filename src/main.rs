@@ -938,8 +938,14 @@ fn live_command(args: LiveArgs) -> Result<()> {
         .iter()
         .map(|r| r.to_string())
         .collect();
+    // The 3-D views titled by checkpoint (the lanes' roots are fixed names).
+    let labels: Vec<String> = std::iter::once(&args.checkpoint)
+        .chain(&args.compare)
+        .map(|dir| gaitscope::eval::model_label(dir))
+        .collect();
+    let titles = telemetry::view_titles(&labels, &roots);
     let finished = if args.web {
-        live_web(&args, setup, checkpoints, &recording_id, &roots)?
+        live_web(&args, setup, checkpoints, &recording_id, &roots, &titles)?
     } else {
         viewer::require_display("gaitscope live")?;
         let url = match &args.connect {
@@ -961,7 +967,7 @@ fn live_command(args: LiveArgs) -> Result<()> {
             url,
             save: args.save.clone(),
         };
-        let (rec, _) = telemetry::open(&sink, &recording_id, &roots)?;
+        let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
         let sim = app::SimHandle::spawn(rec, setup)?;
         let panel = run_panel(&sim, checkpoints, args.exit_after);
         let finished = sim.shutdown();
@@ -1009,6 +1015,7 @@ fn live_web(
     checkpoints: Vec<PathBuf>,
     recording_id: &str,
     roots: &[String],
+    titles: &[String],
 ) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
     use gaitscope::app::{self, web};
     use gaitscope::telemetry::{self, Sink};
@@ -1031,7 +1038,7 @@ fn live_web(
         port: options.grpc_port,
         save: args.save.clone(),
     };
-    let (rec, _) = telemetry::open(&sink, recording_id, roots)?;
+    let (rec, _) = telemetry::open_titled(&sink, recording_id, roots, titles)?;
     let sim = app::SimHandle::spawn(rec, setup)?;
     let server = web::WebServer::start(options.clone(), checkpoints)?;
     eprintln!("control page:     {}", options.control_url());
@@ -1056,6 +1063,7 @@ fn live_web(
     _: gaitscope::app::LiveSetup,
     _: Vec<PathBuf>,
     _: &str,
+    _: &[String],
     _: &[String],
 ) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
     bail!(

@@ -313,6 +313,50 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
     assert_eq!(distance, 3, "every step reached the file");
 }
 
+/// Two models live under severe damage, one joint pinned by hand: the stream's legs show each
+/// model's own damage (red when triggered, purple when pinned), nothing is shadowed by static
+/// data, and every plot line names its checkpoint and lane.
+#[test]
+fn live_legs_show_each_models_damage_and_lines_name_the_model() {
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint(dir.path());
+    let label = gaitscope::eval::model_label(dir.path());
+    let (rec, storage) = memory_stream();
+    let mut live = setup(dir.path(), LiveCondition::Severe);
+    live.compare = Some(dir.path().to_path_buf());
+    let sim = SimHandle::spawn(rec, live).unwrap();
+    for _ in 0..5 {
+        step_once(&sim);
+    }
+    // Pinned before the next step: from that step's frame on, the joint is "manual".
+    assert!(sim.send(Command::Override {
+        actuator: 2,
+        change: JointOverride::SetScale(0.4),
+    }));
+    let pinned_at = step_once(&sim).global_step as i64;
+    for _ in 0..54 {
+        step_once(&sim);
+    }
+    sim.shutdown().unwrap();
+    let chunks = common::recording_chunks(storage.take());
+    common::assert_no_static_shadowing(&chunks);
+    let threshold = GaitConfig::default().damage.threshold;
+    let mut red = 0;
+    for root in LIVE_ROOTS {
+        red += common::check_leg_colors(&chunks, &format!("/{root}"), threshold, &[(pinned_at, 2)]);
+        // One checkpoint twice: its name and the lane in every series name.
+        let names = common::series_names(&chunks, &format!("/{root}/joints/fatigue"));
+        assert_eq!(names.len(), 8);
+        assert!(
+            names
+                .iter()
+                .all(|n| n.starts_with(&format!("{label} ({root}): "))),
+            "{names:?}"
+        );
+    }
+    assert!(red > 0, "60 severe steps trigger a joint");
+}
+
 #[cfg(feature = "live")]
 mod panel {
     use super::*;

@@ -399,88 +399,13 @@ fn the_blueprint_makes_cameras_follow_and_hides_legends() {
     assert_eq!(hidden_legends, 5, "fatigue, scale, z, distance, probe");
 }
 
-/// Which leg capsule each actuated joint moves (assets/ant.xml; docs/world.md has the table).
-const JOINT_GEOMS: [(&str, &str); 8] = [
-    ("hip_1", "left_leg_geom"),
-    ("ankle_1", "left_ankle_geom"),
-    ("hip_2", "right_leg_geom"),
-    ("ankle_2", "right_ankle_geom"),
-    ("hip_3", "back_leg_geom"),
-    ("ankle_3", "third_ankle_geom"),
-    ("hip_4", "rightback_leg_geom"),
-    ("ankle_4", "fourth_ankle_geom"),
-];
-
-/// Every (entity, component) logged as static and every one logged on a timeline.
-fn static_and_temporal(
-    chunks: &[Chunk],
-) -> (
-    std::collections::BTreeSet<(String, String)>,
-    std::collections::BTreeSet<(String, String)>,
-) {
-    let (mut fixed, mut timed) = (Default::default(), Default::default());
-    for c in chunks {
-        let set: &mut std::collections::BTreeSet<_> = if c.is_static() {
-            &mut fixed
-        } else {
-            &mut timed
-        };
-        for component in c.components_identifiers() {
-            set.insert((c.entity_path().to_string(), component.to_string()));
-        }
-    }
-    (fixed, timed)
-}
-
-/// In Rerun, static data hides every per-step value of the same component on that entity: a
-/// component must be one or the other (the legs' colours were both, so damage never showed).
-fn assert_no_static_shadowing(chunks: &[Chunk]) {
-    let (fixed, timed) = static_and_temporal(chunks);
-    let both: Vec<_> = fixed.intersection(&timed).collect();
-    assert!(both.is_empty(), "logged both static and per step: {both:?}");
-    assert!(
-        timed
-            .iter()
-            .any(|(e, c)| e.ends_with("world/legs") && c.contains("color")),
-        "leg colours are per step: {timed:?}"
-    );
-}
-
-/// (step → RGBA of each leg capsule by geom name) for the legs under `root`.
-fn leg_colors(chunks: &[Chunk], root: &str) -> BTreeMap<i64, BTreeMap<String, [u8; 4]>> {
-    let entity = format!("{root}/world/legs");
-    let labels_component = rerun::Capsules3D::descriptor_labels().component;
-    let labels: Vec<String> = chunks
-        .iter()
-        .filter(|c| c.is_static() && c.entity_path().to_string() == entity)
-        .flat_map(|c| {
-            c.iter_slices::<String>(labels_component)
-                .collect::<Vec<_>>()
-        })
-        .flat_map(|s| s.iter().map(|l| l.to_string()).collect::<Vec<_>>())
-        .collect();
-    assert!(!labels.is_empty(), "{entity} names its capsules");
-    let colors = rerun::Capsules3D::descriptor_colors().component;
-    by_step(chunks, &entity, |c| {
-        c.iter_slices::<u32>(colors)
-            .map(|s| {
-                labels
-                    .iter()
-                    .cloned()
-                    .zip(s.iter().map(|rgba| rgba.to_be_bytes()))
-                    .collect()
-            })
-            .collect()
-    })
-}
-
 #[test]
 fn leg_colours_are_per_step_and_turn_red_when_a_joint_triggers() {
     let truth = truth();
     let run = record(options(Sink::Memory), &AtomicBool::new(false)).unwrap();
     let chunks = chunks(run.storage.unwrap().take());
-    assert_no_static_shadowing(&chunks);
-    let colors = leg_colors(&chunks, "/ant");
+    common::assert_no_static_shadowing(&chunks);
+    let colors = common::leg_colors(&chunks, "/ant");
     let threshold = config().damage.threshold;
     let red = gaitscope::telemetry::damage_color(
         gaitscope::damage::JointState::Triggered,
@@ -488,11 +413,16 @@ fn leg_colours_are_per_step_and_turn_red_when_a_joint_triggers() {
         threshold,
     );
     assert_eq!(red, [220, 40, 40, 255], "the palette's triggered red");
+    // Against the env's own account, replayed independently.
     let mut saw_red = false;
     for (t, fatigue) in truth.fatigue.iter().enumerate() {
         let row = &colors[&(t as i64 + 1)];
         for (i, joint) in truth.joint_names.iter().enumerate() {
-            let geom = JOINT_GEOMS.iter().find(|(j, _)| j == joint).unwrap().1;
+            let geom = common::JOINT_GEOMS
+                .iter()
+                .find(|(j, _)| j == joint)
+                .unwrap()
+                .1;
             let triggered = truth
                 .trigger_steps
                 .iter()
@@ -514,4 +444,55 @@ fn leg_colours_are_per_step_and_turn_red_when_a_joint_triggers() {
         saw_red,
         "a severe episode of 80 random steps triggers a joint"
     );
+    assert!(common::check_leg_colors(&chunks, "/ant", threshold, &[]) > 0);
+}
+
+/// Two models side by side: each root's legs show its own damage, and each model's plot lines
+/// carry its name and a hue family of their own (not 16 lines under 8 names).
+#[test]
+fn compared_models_have_their_own_leg_colours_names_and_hues() {
+    use gaitscope::rollout::BuiltinPolicy;
+    let mut opts = options(Sink::Memory);
+    opts.actors = vec![
+        Actor::Builtin(BuiltinPolicy::Random),
+        Actor::Builtin(BuiltinPolicy::Zero),
+    ];
+    let run = record(opts, &AtomicBool::new(false)).unwrap();
+    let chunks = chunks(run.storage.unwrap().take());
+    common::assert_no_static_shadowing(&chunks);
+    let threshold = config().damage.threshold;
+    assert!(
+        common::check_leg_colors(&chunks, "/random", threshold, &[]) > 0,
+        "the random policy's severe episode triggers a joint"
+    );
+    common::check_leg_colors(&chunks, "/zero", threshold, &[]);
+    let mut hues = Vec::new();
+    for root in ["random", "zero"] {
+        let names = common::series_names(&chunks, &format!("/{root}/joints/fatigue"));
+        assert_eq!(names.len(), 8, "{names:?}");
+        assert!(
+            names.iter().all(|n| n.starts_with(&format!("{root}: "))),
+            "{names:?}"
+        );
+        let colors = common::series_colors(&chunks, &format!("/{root}/joints/fatigue"));
+        assert_eq!(colors.len(), 8);
+        assert_eq!(
+            colors
+                .iter()
+                .collect::<std::collections::BTreeSet<_>>()
+                .len(),
+            8,
+            "joints differ in shade"
+        );
+        for (leaf, n) in [("goal/distance", 1), ("reward", 4)] {
+            let names = common::series_names(&chunks, &format!("/{root}/{leaf}"));
+            assert_eq!(names.len(), n, "{leaf}: {names:?}");
+            assert!(names.iter().all(|s| s.starts_with(root)), "{names:?}");
+        }
+        hues.push(colors);
+    }
+    // Orange family vs blue family: every line of the first is redder than any of the second.
+    let max_blue_red = hues[1].iter().map(|c| c[0]).max().unwrap();
+    let min_orange_red = hues[0].iter().map(|c| c[0]).min().unwrap();
+    assert!(min_orange_red > max_blue_red, "{hues:?}");
 }

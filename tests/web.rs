@@ -254,11 +254,14 @@ async fn send_raw(client: &Client, body: &str) -> Value {
 }
 
 fn read_rrd(path: &Path) -> Vec<Chunk> {
+    common::recording_chunks(read_msgs(path))
+}
+
+fn read_msgs(path: &Path) -> Vec<rerun::log::LogMsg> {
     let file = std::io::BufReader::new(std::fs::File::open(path).unwrap());
-    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
+    re_log_encoding::DecoderApp::decode_lazy(file)
         .map_while(Result::ok)
-        .collect();
-    common::recording_chunks(msgs)
+        .collect()
 }
 
 /// PNG → (width, height, variance of the grey level): a blank page has none.
@@ -470,6 +473,17 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     assert!(status.success(), "{stderr}");
     assert!(stderr.contains("control page:"), "{stderr}");
     let chunks = read_rrd(&save);
+    // The legs: per-step colours only, ankle_3 red from the step after the page failed it.
+    common::assert_no_static_shadowing(&chunks);
+    let threshold = gaitscope::GaitConfig::default().damage.threshold;
+    assert_eq!(common::check_leg_colors(&chunks, "/ant", threshold, &[]), 1);
+    // The 3-D view is titled by checkpoint, not by the lane's fixed root ("Ant: ant").
+    let views = common::blueprint_view_names(&read_msgs(&save));
+    assert!(
+        views.contains(&"Ant: encoder-lstm".to_string()),
+        "{views:?}"
+    );
+    assert!(!views.contains(&"Ant: ant".to_string()), "{views:?}");
     let commanded = common::joint_series(&chunks, "/ant/actions/commanded");
     let applied = common::joint_series(&chunks, "/ant/actions/applied");
     assert_eq!(applied.len(), 6, "6 env steps reached the file");

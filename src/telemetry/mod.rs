@@ -134,6 +134,16 @@ pub fn open(
     recording_id: &str,
     roots: &[String],
 ) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
+    open_titled(sink, recording_id, roots, &default_titles(roots))
+}
+
+/// [`open`] with the 3-D views titled (see [`view_titles`]).
+pub fn open_titled(
+    sink: &Sink,
+    recording_id: &str,
+    roots: &[String],
+    titles: &[String],
+) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
     let builder = RecordingStreamBuilder::new(APP_ID).recording_id(recording_id.to_string());
     let (rec, storage) = match sink {
         Sink::File(path) => {
@@ -190,7 +200,7 @@ pub fn open(
     };
     rec.set_log_time_enabled(false);
     rec.set_log_tick_enabled(false);
-    send_layout(&rec, roots)?;
+    send_layout_with(&rec, roots, titles, roots)?;
     Ok((rec, storage))
 }
 
@@ -217,12 +227,42 @@ fn view_path(view: &rerun::blueprint::ContainerLike) -> Option<String> {
 /// The layout, with its properties: each 3-D view follows its Ant's torso, and time-series
 /// legends are hidden (they covered the lines; hovering a line names it).
 pub fn default_layout(roots: &[String]) -> Layout {
-    layout_with(roots, roots)
+    layout_with(roots, &default_titles(roots), roots)
 }
 
-/// The layout with a 3-D view per `world_roots` and every root of `plot_roots` overlaid in
-/// the plots (a rewind's branches beside the history they left).
-pub fn layout_with(world_roots: &[String], plot_roots: &[String]) -> Layout {
+/// 3-D view titles by model: "Ant: LABEL", with the lane's root where two lanes share a label
+/// (one checkpoint side by side with itself).
+pub fn view_titles(labels: &[String], roots: &[String]) -> Vec<String> {
+    labels
+        .iter()
+        .zip(roots)
+        .map(|(label, root)| {
+            if labels.iter().filter(|l| *l == label).count() > 1 {
+                format!("Ant: {label} ({root})")
+            } else {
+                format!("Ant: {label}")
+            }
+        })
+        .collect()
+}
+
+/// "Ant" for one model, "Ant: ROOT" for several (a session titles views by checkpoint instead).
+pub fn default_titles(roots: &[String]) -> Vec<String> {
+    roots
+        .iter()
+        .map(|r| {
+            if roots.len() == 1 {
+                "Ant".to_string()
+            } else {
+                format!("Ant: {r}")
+            }
+        })
+        .collect()
+}
+
+/// The layout with a 3-D view per `world_roots` (titled by `titles`, in the same order) and every
+/// root of `plot_roots` overlaid in the plots (a rewind's branches beside the history they left).
+pub fn layout_with(world_roots: &[String], titles: &[String], plot_roots: &[String]) -> Layout {
     let roots = world_roots;
     let mut properties: Vec<(String, Box<dyn rerun::AsComponents + Send>)> = Vec::new();
     let paths = |leaves: &[&str]| -> Vec<String> {
@@ -233,12 +273,11 @@ pub fn layout_with(world_roots: &[String], plot_roots: &[String]) -> Layout {
     };
     // One 3-D view per model: side-by-side models each get their own camera.
     let mut worlds: Vec<rerun::blueprint::ContainerLike> = Vec::new();
-    for r in roots {
-        let name = if roots.len() == 1 {
-            "Ant".to_string()
-        } else {
-            format!("Ant: {r}")
-        };
+    for (k, r) in roots.iter().enumerate() {
+        let name = titles
+            .get(k)
+            .cloned()
+            .unwrap_or_else(|| format!("Ant: {r}"));
         let view: rerun::blueprint::ContainerLike = Spatial3DView::new(name)
             .with_origin("/")
             .with_contents([format!("/{r}/world/**")])
@@ -328,17 +367,18 @@ pub fn layout_with(world_roots: &[String], plot_roots: &[String]) -> Layout {
 /// blueprint's messages are built on a memory stream, the properties logged into the same
 /// blueprint store, and all of it goes out before the activation command.
 pub fn send_layout(rec: &RecordingStream, roots: &[String]) -> Result<(), TelemetryError> {
-    send_layout_with(rec, roots, roots)
+    send_layout_with(rec, roots, &default_titles(roots), roots)
 }
 
 /// [`send_layout`] with [`layout_with`]'s split of 3-D views and plotted roots.
 pub fn send_layout_with(
     rec: &RecordingStream,
     world_roots: &[String],
+    titles: &[String],
     plot_roots: &[String],
 ) -> Result<(), TelemetryError> {
     use rerun::log::LogMsg;
-    let layout = layout_with(world_roots, plot_roots);
+    let layout = layout_with(world_roots, titles, plot_roots);
     let (scratch, storage) = RecordingStreamBuilder::new(APP_ID).memory()?;
     layout.blueprint.send(
         &scratch,
@@ -413,8 +453,53 @@ pub struct AntLogger {
     pca_palette: Vec<rerun::Color>,
     /// Where this model's world is drawn, so side-by-side Ants do not overlap.
     world_offset: [f32; 3],
-    /// Each leg's last logged gait state (`Some(None)`: swing), so only changes are logged.
+    /// Each leg's last logged gait state, so only changes are logged.
     gait_states: [Option<&'static str>; crate::env::N_LEGS],
+    /// With several lanes in one recording: this lane's name in every series and its own hue.
+    series_style: Option<SeriesStyle>,
+    /// The z size whose series names are logged (with a series style), so they go out once.
+    z_named: Option<usize>,
+}
+
+/// How a lane's plot lines are told apart from another lane's in the same views.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SeriesStyle {
+    /// Prefixed to every series name (`"encoder-lstm: hip_1"`).
+    pub label: String,
+    /// Hue family: 0 orange, 1 blue, 2 green, 3 purple, then around again.
+    pub family: usize,
+}
+
+/// The `i`-th of `n` shades of hue family `family`: one hue, lightness from dark to light, so a
+/// lane's lines read as one colour and the joints within it still differ.
+pub fn family_color(family: usize, i: usize, n: usize) -> [u8; 4] {
+    const HUES: [f64; 4] = [24.0, 212.0, 125.0, 285.0];
+    let hue = HUES[family % HUES.len()];
+    let light = if n <= 1 {
+        0.45
+    } else {
+        0.28 + 0.42 * i as f64 / (n - 1) as f64
+    };
+    let [r, g, b] = hsl_to_rgb(hue, 0.8, light);
+    [r, g, b, 255]
+}
+
+/// HSL (hue in degrees, saturation and lightness in 0..=1) to 8-bit RGB.
+fn hsl_to_rgb(hue: f64, sat: f64, light: f64) -> [u8; 3] {
+    let c = (1.0 - (2.0 * light - 1.0).abs()) * sat;
+    let h = hue.rem_euclid(360.0) / 60.0;
+    let x = c * (1.0 - (h % 2.0 - 1.0).abs());
+    let (r, g, b) = match h as u32 {
+        0 => (c, x, 0.0),
+        1 => (x, c, 0.0),
+        2 => (0.0, c, x),
+        3 => (0.0, x, c),
+        4 => (x, 0.0, c),
+        _ => (c, 0.0, x),
+    };
+    let m = light - c / 2.0;
+    let to8 = |v: f64| ((v + m) * 255.0).round().clamp(0.0, 255.0) as u8;
+    [to8(r), to8(g), to8(b)]
 }
 
 /// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
@@ -481,7 +566,24 @@ impl AntLogger {
                 .collect(),
             world_offset: [0.0; 3],
             gait_states: [None; crate::env::N_LEGS],
+            series_style: None,
+            z_named: None,
         }
+    }
+
+    /// Names and colours this lane's series as one of several lanes (see [`SeriesStyle`]); if
+    /// its static data is already out, the series styles are logged again (static data is
+    /// replaced by a later static write).
+    pub fn set_series_style(&mut self, style: Option<SeriesStyle>) -> Result<(), TelemetryError> {
+        if self.series_style == style {
+            return Ok(());
+        }
+        self.series_style = style;
+        self.z_named = None;
+        if self.static_logged {
+            self.log_series_styles()?;
+        }
+        Ok(())
     }
 
     /// Draws this model's world (floor, goal, Ant) shifted by `offset` metres.
@@ -495,6 +597,7 @@ impl AntLogger {
     pub fn branch(&self, root: &str, env: &AntEnv) -> Self {
         let mut logger = AntLogger::new(self.rec.clone(), root, env, self.probe.clone())
             .with_world_offset(self.world_offset);
+        logger.series_style = self.series_style.clone();
         logger.continue_from(self);
         logger
     }
@@ -591,31 +694,56 @@ impl AntLogger {
             self.path("world/goal/radius").as_str(),
             &rerun::LineStrips3D::new([circle]).with_colors([gold]),
         )?;
-        // Series names for the batched per-joint scalars.
-        let names = || self.joint_names.iter().cloned();
-        let probed = self.probe.is_some();
-        let leaves = [
-            "joints/fatigue",
-            "joints/scale",
-            "actions/commanded",
-            "actions/applied",
-            "probe/predicted",
-            "probe/truth",
-        ];
-        for leaf in leaves
-            .into_iter()
-            .filter(|l| probed || !l.starts_with("probe/"))
-        {
-            rec.log_static(
-                self.path(leaf).as_str(),
-                &rerun::SeriesLines::new().with_names(names()),
-            )?;
-        }
-        rec.log_static(
-            self.path("reward").as_str(),
-            &rerun::SeriesLines::new().with_names(["native", "progress", "success", "total"]),
-        )?;
+        self.log_series_styles()?;
         self.static_logged = true;
+        Ok(())
+    }
+
+    /// Series names (and, as one of several lanes, colours) of every plotted entity: static,
+    /// as they never change within a recording except by being replaced whole.
+    fn log_series_styles(&self) -> Result<(), TelemetryError> {
+        let style = self.series_style.as_ref();
+        let name = |n: &str| match style {
+            Some(s) => format!("{}: {n}", s.label),
+            None => n.to_string(),
+        };
+        let lines = |names: Vec<String>| {
+            let n = names.len();
+            let series = rerun::SeriesLines::new().with_names(names);
+            match style {
+                Some(s) => series.with_colors((0..n).map(|i| color(family_color(s.family, i, n)))),
+                None => series,
+            }
+        };
+        let joints: Vec<String> = self.joint_names.iter().map(|j| name(j)).collect();
+        let probed = self.probe.is_some();
+        let mut entities: Vec<(&str, Vec<String>)> = vec![
+            ("joints/fatigue", joints.clone()),
+            ("joints/scale", joints.clone()),
+            ("actions/commanded", joints.clone()),
+            ("actions/applied", joints.clone()),
+            (
+                "reward",
+                ["native", "progress", "success", "total"]
+                    .iter()
+                    .map(|n| name(n))
+                    .collect(),
+            ),
+        ];
+        if probed {
+            entities.push(("probe/predicted", joints.clone()));
+            entities.push(("probe/truth", joints.clone()));
+        }
+        if style.is_some() {
+            // One line each: the lane's name says whose it is.
+            entities.push(("joints/threshold", vec![name("threshold τ")]));
+            entities.push(("goal/distance", vec![name("goal distance")]));
+            entities.push(("goal/progress_rate", vec![name("progress rate")]));
+        }
+        for (leaf, names) in entities {
+            self.rec
+                .log_static(self.path(leaf).as_str(), &lines(names))?;
+        }
         Ok(())
     }
 
@@ -874,6 +1002,18 @@ impl AntLogger {
         )?;
         // The latent, its PCA projection and the probes' readout.
         if let Some(z) = z {
+            if let Some(style) = &self.series_style
+                && self.z_named != Some(z.len())
+            {
+                let n = z.len();
+                self.rec.log_static(
+                    self.path("latent/z").as_str(),
+                    &rerun::SeriesLines::new()
+                        .with_names((0..n).map(|i| format!("{}: z{i}", style.label)))
+                        .with_colors((0..n).map(|i| color(family_color(style.family, i, n)))),
+                )?;
+                self.z_named = Some(n);
+            }
             self.rec.log(
                 self.path("latent/z").as_str(),
                 &rerun::Scalars::new(z.iter().map(|&v| v as f64)),
@@ -973,4 +1113,35 @@ fn geom_pose(
         Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32),
         Quat::from_mat3(&rotation).normalize(),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn views_are_titled_by_model_and_lane_only_where_models_repeat() {
+        let s = |v: &[&str]| v.iter().map(|x| x.to_string()).collect::<Vec<_>>();
+        assert_eq!(
+            super::view_titles(&s(&["encoder-lstm", "baseline"]), &s(&["ant", "compare"])),
+            s(&["Ant: encoder-lstm", "Ant: baseline"])
+        );
+        assert_eq!(
+            super::view_titles(&s(&["run", "run"]), &s(&["ant", "compare"])),
+            s(&["Ant: run (ant)", "Ant: run (compare)"])
+        );
+    }
+
+    #[test]
+    fn hsl_primaries_and_family_shades() {
+        assert_eq!(super::hsl_to_rgb(0.0, 1.0, 0.5), [255, 0, 0]);
+        assert_eq!(super::hsl_to_rgb(120.0, 1.0, 0.5), [0, 255, 0]);
+        assert_eq!(super::hsl_to_rgb(240.0, 1.0, 0.5), [0, 0, 255]);
+        assert_eq!(super::hsl_to_rgb(60.0, 0.0, 0.5), [128, 128, 128]);
+        // Shades of one family run dark to light.
+        let shades: Vec<[u8; 4]> = (0..8).map(|i| super::family_color(1, i, 8)).collect();
+        let lum = |c: &[u8; 4]| c[0] as u32 + c[1] as u32 + c[2] as u32;
+        assert!(
+            shades.windows(2).all(|w| lum(&w[0]) < lum(&w[1])),
+            "{shades:?}"
+        );
+    }
 }

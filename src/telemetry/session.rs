@@ -8,7 +8,7 @@ use rand_distr::StandardNormal;
 use rerun::RecordingStream;
 use std::path::PathBuf;
 
-use super::{AntLogger, EpisodeMeta, Sink, TelemetryError, open};
+use super::{AntLogger, EpisodeMeta, Sink, TelemetryError};
 use crate::config::{DamageConfig, EnvConfig, GaitConfig};
 use crate::damage::{DamageEdit, JointOverride, N_ACTUATORS};
 use crate::env::{AntEnv, EnvSnapshot, Observation, StepOutcome};
@@ -155,6 +155,14 @@ pub struct Lane {
 }
 
 impl Lane {
+    /// Its name in plot legends: the model, and whether this lane is a fork.
+    fn series_label(&self) -> String {
+        match self.fork_of {
+            Some(_) => format!("{} (fork)", self.actor.label()),
+            None => self.actor.label(),
+        }
+    }
+
     fn new(
         spec: LaneSpec,
         rec: &RecordingStream,
@@ -339,7 +347,7 @@ impl Session {
             .map(|spec| Lane::new(spec, &rec, &config, 0))
             .collect::<Result<Vec<_>, _>>()?;
         let plot_roots = lanes.iter().map(|l| l.root.clone()).collect();
-        Ok(Self {
+        let mut session = Self {
             rec,
             lanes,
             config,
@@ -355,7 +363,28 @@ impl Session {
             episode_start: 0,
             global_max: 0,
             plot_roots,
-        })
+        };
+        session.style_lanes()?;
+        Ok(session)
+    }
+
+    /// With several lanes in the same plots, each gets its name in every series name and a hue
+    /// family of its own (one lane alone keeps plain joint names and distinct colours).
+    fn style_lanes(&mut self) -> Result<(), RecordError> {
+        let several = self.lanes.len() > 1;
+        let labels: Vec<String> = self.lanes.iter().map(Lane::series_label).collect();
+        for (k, lane) in self.lanes.iter_mut().enumerate() {
+            // The model's name; with the lane's root where two lanes share a model.
+            let shared = labels.iter().filter(|l| **l == labels[k]).count() > 1;
+            let label = if shared {
+                format!("{} ({})", labels[k], lane.base_root)
+            } else {
+                labels[k].clone()
+            };
+            let style = several.then(|| super::SeriesStyle { label, family: k });
+            lane.logger.set_series_style(style)?;
+        }
+        Ok(())
     }
 
     /// Keep every step's state of the current episode (up to [`HISTORY_CAP`]), so
@@ -391,7 +420,9 @@ impl Session {
                 .filter(|r| !self.plot_roots.contains(r))
                 .cloned(),
         );
-        super::send_layout_with(&self.rec, &roots, &plots)
+        let labels: Vec<String> = self.lanes.iter().map(Lane::series_label).collect();
+        let titles = super::view_titles(&labels, &roots);
+        super::send_layout_with(&self.rec, &roots, &titles, &plots)
     }
 
     fn drop_fork(&mut self) -> Result<bool, RecordError> {
@@ -510,6 +541,7 @@ impl Session {
         lane.logger.continue_from(&self.lanes[0].logger);
         lane.logger.log_note(super::NoteLevel::Branch, &described)?;
         self.lanes.push(lane);
+        self.style_lanes()?;
         self.send_current_layout()?;
         Ok(())
     }
@@ -542,15 +574,16 @@ impl Session {
     /// Replaces the models (e.g. another checkpoint picked in the panel); start an episode next.
     /// The recording and its timelines go on.
     pub fn replace_lanes(&mut self, specs: Vec<LaneSpec>) -> Result<(), RecordError> {
-        // The layout follows the models: one 3-D view each.
         let roots: Vec<String> = specs.iter().map(|s| s.root.clone()).collect();
-        super::send_layout(&self.rec, &roots)?;
         self.lanes = specs
             .into_iter()
             .map(|spec| Lane::new(spec, &self.rec, &self.config, self.seed))
             .collect::<Result<Vec<_>, _>>()?;
+        self.style_lanes()?;
         self.plot_roots = roots;
         self.config_changed = false;
+        // The layout follows the models: one 3-D view each.
+        self.send_current_layout()?;
         Ok(())
     }
 
@@ -821,7 +854,9 @@ pub fn record(
         opts.seed,
         opts.episodes
     );
-    let (rec, storage) = open(&opts.sink, &recording_id, &roots)?;
+    let labels: Vec<String> = opts.actors.iter().map(Actor::label).collect();
+    let titles = super::view_titles(&labels, &roots);
+    let (rec, storage) = super::open_titled(&opts.sink, &recording_id, &roots, &titles)?;
     let specs = opts
         .actors
         .into_iter()

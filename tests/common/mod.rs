@@ -80,3 +80,165 @@ pub fn joint_series(chunks: &[Chunk], entity: &str) -> std::collections::BTreeMa
     .into_iter()
     .collect()
 }
+
+/// Which leg capsule each actuated joint moves (assets/ant.xml; docs/world.md has the table).
+pub const JOINT_GEOMS: [(&str, &str); 8] = [
+    ("hip_1", "left_leg_geom"),
+    ("ankle_1", "left_ankle_geom"),
+    ("hip_2", "right_leg_geom"),
+    ("ankle_2", "right_ankle_geom"),
+    ("hip_3", "back_leg_geom"),
+    ("ankle_3", "third_ankle_geom"),
+    ("hip_4", "rightback_leg_geom"),
+    ("ankle_4", "fourth_ankle_geom"),
+];
+
+/// In Rerun, static data hides every per-step value of the same component on that entity: no
+/// (entity, component) may be logged both ways (the legs' colours were, so damage never showed).
+pub fn assert_no_static_shadowing(chunks: &[Chunk]) {
+    use std::collections::BTreeSet;
+    let (mut fixed, mut timed) = (BTreeSet::new(), BTreeSet::new());
+    for c in chunks {
+        let set = if c.is_static() {
+            &mut fixed
+        } else {
+            &mut timed
+        };
+        for component in c.components_identifiers() {
+            set.insert((c.entity_path().to_string(), component.to_string()));
+        }
+    }
+    let both: Vec<_> = fixed.intersection(&timed).collect();
+    assert!(both.is_empty(), "logged both static and per step: {both:?}");
+    assert!(
+        timed
+            .iter()
+            .any(|(e, c)| e.ends_with("world/legs") && c.contains("colors")),
+        "leg colours are per step"
+    );
+}
+
+/// (step → RGBA of each leg capsule, by geom name) of the legs under `root` (e.g. "/ant").
+pub fn leg_colors(
+    chunks: &[Chunk],
+    root: &str,
+) -> std::collections::BTreeMap<i64, std::collections::BTreeMap<String, [u8; 4]>> {
+    let entity = format!("{root}/world/legs");
+    let labels_component = rerun::Capsules3D::descriptor_labels().component;
+    let labels: Vec<String> = chunks
+        .iter()
+        .filter(|c| c.is_static() && c.entity_path().to_string() == entity)
+        .flat_map(|c| {
+            c.iter_slices::<String>(labels_component)
+                .collect::<Vec<_>>()
+        })
+        .flat_map(|s| s.iter().map(|l| l.to_string()).collect::<Vec<_>>())
+        .collect();
+    assert!(!labels.is_empty(), "{entity} names its capsules");
+    let colors = rerun::Capsules3D::descriptor_colors().component;
+    per_step(chunks, &entity, |c| {
+        c.iter_slices::<u32>(colors)
+            .map(|s| {
+                labels
+                    .iter()
+                    .cloned()
+                    .zip(s.iter().map(|rgba| rgba.to_be_bytes()))
+                    .collect()
+            })
+            .collect()
+    })
+    .into_iter()
+    .collect()
+}
+
+/// Checks every leg colour under `root` against the damage palette applied to the recording's
+/// own fatigue and torque-scale series at that step (`manual`: joints pinned by hand, by
+/// actuator index, from that step on). Returns how many (step, joint) pairs were red.
+pub fn check_leg_colors(
+    chunks: &[Chunk],
+    root: &str,
+    threshold: f64,
+    manual: &[(i64, usize)],
+) -> usize {
+    use gaitscope::damage::JointState;
+    use gaitscope::telemetry::damage_color;
+    let joints: Vec<String> = gaitscope::env::AntEnv::new(gaitscope::GaitConfig::default(), 0)
+        .unwrap()
+        .actuators()
+        .iter()
+        .map(|a| a.joint.clone())
+        .collect();
+    let fatigue = joint_series(chunks, &format!("{root}/joints/fatigue"));
+    let scale = joint_series(chunks, &format!("{root}/joints/scale"));
+    let colors = leg_colors(chunks, root);
+    assert!(!colors.is_empty(), "{root}: leg colours per step");
+    let mut red = 0;
+    for (step, row) in &colors {
+        let (Some(f), Some(s)) = (fatigue.get(step), scale.get(step)) else {
+            continue; // a reset frame: no step values yet
+        };
+        for (i, joint) in joints.iter().enumerate() {
+            let geom = JOINT_GEOMS.iter().find(|(j, _)| j == joint).unwrap().1;
+            let state = if manual.iter().any(|&(at, a)| a == i && *step >= at) {
+                JointState::Manual
+            } else if s[i] < 1.0 {
+                JointState::Triggered
+            } else {
+                JointState::Healthy
+            };
+            red += usize::from(state == JointState::Triggered);
+            assert_eq!(
+                row[geom],
+                damage_color(state, f[i], threshold),
+                "{root}: {geom} ({joint}) at step {step}, scale {}, fatigue {}",
+                s[i],
+                f[i]
+            );
+        }
+    }
+    red
+}
+
+/// The static series names of a plotted entity.
+pub fn series_names(chunks: &[Chunk], entity: &str) -> Vec<String> {
+    let names = rerun::SeriesLines::descriptor_names().component;
+    chunks
+        .iter()
+        .filter(|c| c.is_static() && c.entity_path().to_string() == entity)
+        .flat_map(|c| c.iter_slices::<String>(names).collect::<Vec<_>>())
+        .flat_map(|s| s.iter().map(|l| l.to_string()).collect::<Vec<_>>())
+        .collect()
+}
+
+/// The static series colours of a plotted entity (RGBA).
+pub fn series_colors(chunks: &[Chunk], entity: &str) -> Vec<[u8; 4]> {
+    let colors = rerun::SeriesLines::descriptor_colors().component;
+    chunks
+        .iter()
+        .filter(|c| c.is_static() && c.entity_path().to_string() == entity)
+        .flat_map(|c| c.iter_slices::<u32>(colors).collect::<Vec<_>>())
+        .flat_map(|s| s.iter().map(|v| v.to_be_bytes()).collect::<Vec<_>>())
+        .collect()
+}
+
+/// The display names of every view in the blueprint messages (the last layout sent comes last).
+pub fn blueprint_view_names(msgs: &[rerun::log::LogMsg]) -> Vec<String> {
+    let mut names = Vec::new();
+    for msg in msgs {
+        let rerun::log::LogMsg::ArrowMsg(store, arrow) = msg else {
+            continue;
+        };
+        if !store.is_blueprint() {
+            continue;
+        }
+        let chunk = Chunk::from_arrow_msg(arrow).expect("a blueprint chunk decodes");
+        for component in chunk.components_identifiers() {
+            if component.to_string().contains("display_name") {
+                for s in chunk.iter_slices::<String>(component) {
+                    names.extend(s.iter().map(|n| n.to_string()));
+                }
+            }
+        }
+    }
+    names
+}
