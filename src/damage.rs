@@ -124,6 +124,32 @@ pub struct DamageEvent {
     pub source: Option<String>,
 }
 
+impl DamageEvent {
+    /// The event in words, the same everywhere it is shown (stream, page, panel):
+    /// "ankle_3 triggered at fatigue 31.2; scale → 0.1", "hip_1 scale → 0.4 (manual)".
+    pub fn describe(&self) -> String {
+        let joint = &self.joint;
+        let what = match &self.kind {
+            DamageEventKind::Trigger => format!(
+                "{joint} triggered at fatigue {:.1}; scale → {}",
+                self.fatigue, self.scale
+            ),
+            DamageEventKind::Override { change } => match change {
+                JointOverride::SetScale(s) => format!("{joint} scale → {s} (manual)"),
+                JointOverride::FailNow | JointOverride::FailTo(_) => {
+                    format!("{joint} failed by hand; scale → {}", self.scale)
+                }
+                JointOverride::Heal => format!("{joint} healed; scale → 1"),
+                JointOverride::ResetFatigue => format!("{joint} fatigue reset to 0"),
+            },
+        };
+        match &self.source {
+            Some(scenario) => format!("scenario {scenario}: {what}"),
+            None => what,
+        }
+    }
+}
+
 /// Per-joint state as the viewer shows it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

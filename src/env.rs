@@ -114,6 +114,22 @@ pub struct StepOutcome {
 }
 
 impl StepOutcome {
+    /// How the episode ended at this step, in words ("success", "fell", "timeout",
+    /// "unstable"), or `None` while it goes on.
+    pub fn ending(&self) -> Option<&'static str> {
+        if self.success {
+            Some("success")
+        } else if self.unstable {
+            Some("unstable simulation")
+        } else if self.terminated {
+            Some("fell")
+        } else if self.truncated {
+            Some("timeout")
+        } else {
+            None
+        }
+    }
+
     pub fn done(&self) -> bool {
         self.terminated || self.truncated
     }

@@ -158,21 +158,15 @@ fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
     let expect = [
         (
             6,
-            format!("step 5: {} override FailNow; scale → 0.1", names[2]),
+            format!("step 6: {} failed by hand; scale → 0.1", names[2]),
         ),
-        (
-            11,
-            format!("step 10: {} override SetScale(0.3); scale → 0.3", names[5]),
-        ),
-        (
-            12,
-            format!("step 11: {} override Heal; scale → 1", names[2]),
-        ),
+        (11, format!("step 11: {} scale → 0.3 (manual)", names[5])),
+        (12, format!("step 12: {} healed; scale → 1", names[2])),
     ];
     assert_eq!(
         events,
         expect.map(|(t, s)| (t, s)).to_vec(),
-        "exactly the three overrides, each with the step it applied to"
+        "exactly the three overrides, each text naming its row's step"
     );
 }
 

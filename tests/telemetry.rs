@@ -127,7 +127,8 @@ fn check(chunks: &[Chunk], truth: &Truth) {
     for (step, joint) in &truth.trigger_steps {
         let at = *step as i64 + 1;
         assert!(
-            events.iter().any(|(t, e)| *t == at && e.starts_with(&format!("step {step}: {joint} triggered"))),
+            events.iter().any(|(t, e)| *t == at
+                && e.starts_with(&format!("step {at}: {joint} triggered at fatigue"))),
             "trigger of {joint} at step {step} not logged at global step {at}: {events:?}"
         );
     }
@@ -490,6 +491,40 @@ fn compared_models_have_their_own_leg_colours_names_and_hues() {
             assert!(names.iter().all(|s| s.starts_with(root)), "{names:?}");
         }
         hues.push(colors);
+    }
+    // Each lane's ending is written in its 3-D view, at its last step, with its step count.
+    let labels = rerun::Points3D::descriptor_labels().component;
+    for root in ["random", "zero"] {
+        // Rows with a distance (a lane that ended also has a Clear row after its last step).
+        let scalars = rerun::Scalars::descriptor_scalars().component;
+        let steps: Vec<(i64, usize)> =
+            common::per_step(&chunks, &format!("/{root}/goal/distance"), |c| {
+                c.iter_slices::<f64>(scalars).map(|s| s.len()).collect()
+            })
+            .into_iter()
+            .filter(|(_, n)| *n > 0)
+            .collect();
+        let last = steps.iter().map(|(t, _)| *t).max().unwrap();
+        let endings: Vec<(i64, Vec<String>)> =
+            common::per_step(&chunks, &format!("/{root}/world/ending"), |c| {
+                c.iter_slices::<String>(labels)
+                    .map(|s| s.iter().map(|l| l.to_string()).collect())
+                    .collect()
+            });
+        let shown: Vec<_> = endings.iter().filter(|(_, l)| !l.is_empty()).collect();
+        assert_eq!(shown.len(), 1, "{root}: {endings:?}");
+        assert_eq!(shown[0].0, last, "{root}: at its last step");
+        let text = &shown[0].1[0];
+        assert!(
+            text.ends_with(&format!("after {} steps", steps.len())),
+            "{root}: {text}"
+        );
+        assert!(
+            ["SUCCESS", "FELL", "TIMEOUT"]
+                .iter()
+                .any(|w| text.starts_with(w)),
+            "{text}"
+        );
     }
     // Orange family vs blue family: every line of the first is redder than any of the second.
     let max_blue_red = hues[1].iter().map(|c| c[0]).max().unwrap();

@@ -500,10 +500,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     let events = common::text_log(&chunks, "/ant/events");
     assert_eq!(
         events,
-        vec![(
-            6,
-            "step 5: ankle_3 override FailNow; scale → 0.1".to_string()
-        )]
+        vec![(6, "step 6: ankle_3 failed by hand; scale → 0.1".to_string())]
     );
 }
 

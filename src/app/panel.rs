@@ -329,7 +329,13 @@ impl Panel {
             ui.label("no model loaded");
             return;
         };
-        ui.label(RichText::new(format!("Joints — fatigue, τ = {:.0}", lane.threshold)).strong());
+        ui.label(
+            RichText::new(format!(
+                "Joints of {} — fatigue, τ = {:.0}",
+                lane.label, lane.threshold
+            ))
+            .strong(),
+        );
         egui::Grid::new("joints")
             .num_columns(6)
             .spacing([6.0, 4.0])
@@ -337,7 +343,8 @@ impl Panel {
             .show(ui, |ui| {
                 ui.spacing_mut().slider_width = 80.0;
                 for i in 0..N_ACTUATORS {
-                    ui.label(&lane.joint_names[i]);
+                    ui.label(&lane.joint_names[i])
+                        .on_hover_text(&lane.joint_legs[i]);
                     fatigue_bar(ui, lane.fatigue[i], lane.threshold, lane.states[i]);
                     let (text, color) = state_text(lane.states[i]);
                     ui.colored_label(color, text);
@@ -508,6 +515,18 @@ impl Panel {
                 None => format!("{} ({})", lane.label, lane.encoder),
             };
             ui.label(RichText::new(title).strong());
+            if let Some(ending) = lane.ending {
+                let color = if ending == "success" {
+                    egui::Color32::from_rgb(40, 160, 60)
+                } else {
+                    egui::Color32::from_rgb(220, 40, 40)
+                };
+                ui.label(
+                    RichText::new(format!("episode ended: {ending} after {} steps", lane.step))
+                        .color(color)
+                        .strong(),
+                );
+            }
             ui.label(format!(
                 "step {} / {} · goal distance {:.2} m · success {} · damaged joints {}{}",
                 lane.step,

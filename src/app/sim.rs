@@ -101,7 +101,11 @@ pub struct LaneView {
     pub distance: f64,
     pub success: bool,
     pub done: bool,
+    /// How the episode ended ("success", "fell", "timeout", …), once it has.
+    pub ending: Option<&'static str>,
     pub joint_names: [String; N_ACTUATORS],
+    /// The leg each joint moves (the gait view's lane names: `front_left_leg`, …).
+    pub joint_legs: [String; N_ACTUATORS],
     pub fatigue: [f64; N_ACTUATORS],
     pub threshold: f64,
     pub states: [JointState; N_ACTUATORS],
@@ -142,7 +146,9 @@ impl LaneView {
             distance: last.map_or_else(|| env.goal_distance(), |o| o.distance),
             success: last.is_some_and(|o| o.success),
             done: lane.is_done(),
+            ending: last.and_then(crate::env::StepOutcome::ending),
             joint_names: damage.joint_names().clone(),
+            joint_legs: std::array::from_fn(|i| env.leg_names()[env.leg_of_actuator()[i]].clone()),
             fatigue: *damage.fatigue(),
             threshold: damage.config().threshold,
             states,
@@ -153,14 +159,11 @@ impl LaneView {
             applied: last.map_or([0.0; N_ACTUATORS], |o| o.applied_action),
             fork_of: lane.fork_of().map(str::to_string),
             events: damage.events().len(),
-            last_event: damage.events().last().map(|e| match e.kind {
-                crate::damage::DamageEventKind::Trigger => {
-                    format!("step {}: {} triggered", e.step, e.joint)
-                }
-                crate::damage::DamageEventKind::Override { change } => {
-                    format!("step {}: {} {:?}", e.step, e.joint, change)
-                }
-            }),
+            // Counted as the page's step counter counts: steps taken in this episode.
+            last_event: damage
+                .events()
+                .last()
+                .map(|e| format!("step {}: {}", e.step + 1, e.describe())),
         }
     }
 }

@@ -663,6 +663,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
                 .map(|i| {
                     json!({
                         "name": l.joint_names[i],
+                        "leg": l.joint_legs[i],
                         "fatigue": l.fatigue[i],
                         "state": state_name(l.states[i]),
                         "scale": l.scale[i],
@@ -682,6 +683,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
                 "distance": l.distance,
                 "success": l.success,
                 "done": l.done,
+                "ending": l.ending,
                 "threshold": l.threshold,
                 "joints": joints,
                 "events": l.events,

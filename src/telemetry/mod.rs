@@ -459,6 +459,8 @@ pub struct AntLogger {
     series_style: Option<SeriesStyle>,
     /// The z size whose series names are logged (with a series style), so they go out once.
     z_named: Option<usize>,
+    /// The `step` timeline's value now: event texts name it.
+    now_step: u64,
 }
 
 /// How a lane's plot lines are told apart from another lane's in the same views.
@@ -552,7 +554,19 @@ impl AntLogger {
             capsules,
             torso,
             floor_half,
-            joint_names: env.actuators().iter().map(|a| a.joint.clone()).collect(),
+            // Series named by joint and the leg it moves (the gait view's lane names).
+            joint_names: env
+                .actuators()
+                .iter()
+                .enumerate()
+                .map(|(i, a)| {
+                    format!(
+                        "{} ({})",
+                        a.joint,
+                        env.leg_names()[env.leg_of_actuator()[i]]
+                    )
+                })
+                .collect(),
             probe,
             trail: Vec::new(),
             pca_trail: Vec::new(),
@@ -568,6 +582,7 @@ impl AntLogger {
             gait_states: [None; crate::env::N_LEGS],
             series_style: None,
             z_named: None,
+            now_step: 0,
         }
     }
 
@@ -748,7 +763,8 @@ impl AntLogger {
     }
 
     /// Sets the timelines for global step `step` of episode `episode`.
-    pub fn set_time(&self, step: u64, episode: u64) {
+    pub fn set_time(&mut self, step: u64, episode: u64) {
+        self.now_step = step;
         self.rec.set_time_sequence("step", step as i64);
         self.rec
             .set_duration_secs("sim_time", step as f64 * self.dt);
@@ -769,6 +785,26 @@ impl AntLogger {
             self.trail.clear();
             self.pca_trail.clear();
             self.logged_events = 0;
+            self.rec
+                .log(self.path("world/ending").as_str(), &rerun::Clear::flat())?;
+        }
+        // The ending, in the 3-D view above the Ant, until the lane's next episode starts
+        // (a side-by-side lane that goes on shows nothing there).
+        if let Some(ending) = outcome.and_then(StepOutcome::ending) {
+            let torso = env.physics().xpos()[env.torso_body()];
+            let color = match ending {
+                "success" => rerun::Color::from_rgb(40, 160, 60),
+                _ => rerun::Color::from_rgb(220, 40, 40),
+            };
+            let steps = outcome.map_or(0, |o| o.step + 1);
+            self.rec.log(
+                self.path("world/ending").as_str(),
+                &rerun::Points3D::new([[torso[0] as f32, torso[1] as f32, torso[2] as f32 + 0.8]])
+                    .with_radii([rerun::Radius::new_ui_points(6.0)])
+                    .with_colors([color])
+                    .with_labels([format!("{} after {steps} steps", ending.to_uppercase())])
+                    .with_show_labels(true),
+            )?;
         }
         // τ at the episode's start and end: a flat line across the fatigue plot.
         self.rec.log(
@@ -958,29 +994,13 @@ impl AntLogger {
             }
         }
         // Events since the last step, as text (the state changes are in the series above).
+        // The text's step is the row's (the `step` column), so the two never disagree.
         for e in &damage.events()[self.logged_events..] {
-            let (level, text) = match &e.kind {
-                DamageEventKind::Trigger => (
-                    rerun::TextLogLevel::WARN,
-                    format!(
-                        "step {}: {} triggered at fatigue {:.1}; scale → {}",
-                        e.step, e.joint, e.fatigue, e.scale
-                    ),
-                ),
-                DamageEventKind::Override { change } => (
-                    rerun::TextLogLevel::INFO,
-                    match &e.source {
-                        Some(scenario) => format!(
-                            "step {}: {} scenario {scenario}: {change:?}; scale → {}",
-                            e.step, e.joint, e.scale
-                        ),
-                        None => format!(
-                            "step {}: {} override {:?}; scale → {}",
-                            e.step, e.joint, change, e.scale
-                        ),
-                    },
-                ),
+            let level = match &e.kind {
+                DamageEventKind::Trigger => rerun::TextLogLevel::WARN,
+                DamageEventKind::Override { .. } => rerun::TextLogLevel::INFO,
             };
+            let text = format!("step {}: {}", self.now_step, e.describe());
             self.rec.log(
                 self.path("events").as_str(),
                 &rerun::TextLog::new(text).with_level(level),
