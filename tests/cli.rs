@@ -347,6 +347,9 @@ fn live_and_view_explain_what_is_missing() {
         e.contains("no display") && e.contains("gaitscope record"),
         "{e}"
     );
+    // ... and for `live`, the browser first.
+    let web = e.find("live --web").expect("mentions live --web");
+    assert!(web < e.find("gaitscope record").unwrap(), "{e}");
     // Bad settings are refused before any window or viewer opens (a display is "set" here, but
     // nothing gets far enough to use it).
     let out = gaitscope_display(&["live", "--speed", "20"], Some(":12345"));
@@ -375,7 +378,11 @@ fn live_and_view_explain_what_is_missing() {
     );
     // view: the file is checked first, then the display.
     let out = gaitscope_display(&["view", "nowhere.rrd"], None);
-    assert!(stderr(&out).contains("nowhere.rrd"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("nowhere.rrd not found"),
+        "{}",
+        stderr(&out)
+    );
     let text = write(dir.path(), "notes.rrd", "not a recording");
     let out = gaitscope_display(&["view", &text], None);
     assert!(
@@ -386,4 +393,45 @@ fn live_and_view_explain_what_is_missing() {
     let rrd = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/baseline-severe.rrd");
     let out = gaitscope_display(&["view", rrd.to_str().unwrap()], None);
     assert!(stderr(&out).contains("no display"), "{}", stderr(&out));
+}
+
+/// The paths a newcomer passes where a checkpoint folder belongs get told what they are.
+#[test]
+fn a_checkpoint_flag_given_an_sb3_zip_or_a_folder_of_runs_says_what_to_pass() {
+    let dir = tempfile::tempdir().unwrap();
+    let zip = dir.path().join("sac_ant.zip");
+    // A zip's local-file magic is enough to recognise the archive.
+    std::fs::write(&zip, b"PK\x03\x04 rest of an archive").unwrap();
+    let zip_s = zip.to_str().unwrap();
+    for args in [
+        vec!["record", "--checkpoint", zip_s, "--out", "/tmp/never.rrd"],
+        vec!["eval", "--checkpoint", zip_s],
+    ] {
+        let e = stderr(&gaitscope(&args));
+        assert!(
+            e.contains("Stable-Baselines3 archive")
+                && e.contains(&format!("gaitscope import-sb3 {zip_s}")),
+            "{args:?}: {e}"
+        );
+    }
+    let runs = dir.path().join("seeds");
+    for run in ["a-s1", "b-s2"] {
+        std::fs::create_dir_all(runs.join(run)).unwrap();
+        std::fs::write(runs.join(run).join("checkpoint.json"), "{}").unwrap();
+    }
+    let e = stderr(&gaitscope(&[
+        "eval",
+        "--checkpoint",
+        runs.to_str().unwrap(),
+    ]));
+    assert!(e.contains("is a folder of runs"), "{e}");
+    assert!(e.contains("seeds/a-s1") && e.contains("seeds/b-s2"), "{e}");
+    // import-sb3 wants the zip, not a folder.
+    let e = stderr(&gaitscope(&[
+        "import-sb3",
+        runs.to_str().unwrap(),
+        "--out",
+        "/tmp/never",
+    ]));
+    assert!(e.contains("it is a folder") && e.contains(".zip"), "{e}");
 }

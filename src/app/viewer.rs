@@ -28,11 +28,12 @@ pub enum ViewerError {
     #[error("cannot run the Rerun viewer at {path}: {reason}")]
     NotRunnable { path: PathBuf, reason: String },
     #[error(
-        "no display: {what} needs a window (DISPLAY and WAYLAND_DISPLAY are unset). Headless, use \
-         `gaitscope record --checkpoint DIR --out FILE.rrd` and open the file on a machine with a \
-         display (`gaitscope view FILE.rrd`), or run under Xvfb (scripts/screenshot-live.sh)"
+        "no display: {what} needs a window (DISPLAY and WAYLAND_DISPLAY are unset). {hint}",
+        hint = headless_hint(what)
     )]
     NoDisplay { what: &'static str },
+    #[error("{0} not found")]
+    RecordingNotFound(PathBuf),
     #[error("spawning the Rerun viewer: {0}")]
     Spawn(String),
     #[error(
@@ -130,6 +131,18 @@ pub fn find_viewer(explicit: Option<&Path>) -> Result<PathBuf, ViewerError> {
 
 /// Fails with a message naming the headless alternative when there is no display to open
 /// windows on.
+/// What to do instead without a display: the browser first where the command has a web mode.
+fn headless_hint(what: &str) -> &'static str {
+    if what.contains("live") {
+        "Headless, use `gaitscope live --web` (the viewer and the control panel in a browser, \
+         e.g. through an SSH tunnel), or `gaitscope record --checkpoint DIR --out FILE.rrd` and \
+         open the file where there is a display"
+    } else {
+        "Headless, open the file on a machine with a display (`gaitscope view FILE.rrd`), or \
+         run under Xvfb (scripts/screenshot.sh)"
+    }
+}
+
 pub fn require_display(what: &'static str) -> Result<(), ViewerError> {
     let set = |k: &str| std::env::var_os(k).is_some_and(|v| !v.is_empty());
     if cfg!(target_os = "linux") && !set("DISPLAY") && !set("WAYLAND_DISPLAY") {
@@ -191,6 +204,9 @@ pub fn check_recording(path: &Path) -> Result<(), ViewerError> {
         path: path.to_path_buf(),
         reason,
     };
+    if !path.exists() {
+        return Err(ViewerError::RecordingNotFound(path.to_path_buf()));
+    }
     let mut magic = [0u8; 4];
     std::fs::File::open(path)
         .and_then(|mut f| f.read_exact(&mut magic))

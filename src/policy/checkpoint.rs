@@ -58,6 +58,16 @@ pub struct Provenance {
 pub enum CheckpointError {
     #[error("checkpoint directory {0} does not exist")]
     NoSuchDir(PathBuf),
+    #[error(
+        "{0} is a Stable-Baselines3 archive, not a gaitscope checkpoint folder; convert it first:\n  gaitscope import-sb3 {0} --out checkpoints/<name>"
+    )]
+    Sb3Archive(PathBuf),
+    #[error(
+        "{0} is a file, not a checkpoint folder (one with checkpoint.json and model.safetensors)"
+    )]
+    NotADir(PathBuf),
+    #[error("{dir} is a folder of runs, not one checkpoint; pass one of:\n{}", list_paths(.runs))]
+    FolderOfRuns { dir: PathBuf, runs: Vec<PathBuf> },
     #[error("cannot read {path}: {source}")]
     Read {
         path: PathBuf,
@@ -374,8 +384,51 @@ pub fn meta_json(dir: &Path, meta: &CheckpointMeta) -> Result<Vec<u8>, Checkpoin
     })
 }
 
+fn list_paths(paths: &[PathBuf]) -> String {
+    paths
+        .iter()
+        .map(|p| format!("  {}", p.display()))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// What a path given as a checkpoint is, when it is not one: an SB3 zip, a plain file, a
+/// folder of run folders (`checkpoints/seeds`). `None` when nothing more specific fits.
+fn misplaced_checkpoint(dir: &Path) -> Option<CheckpointError> {
+    if dir.is_file() {
+        let mut magic = [0u8; 4];
+        let is_zip = std::fs::File::open(dir)
+            .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic))
+            .is_ok()
+            && magic == *b"PK\x03\x04";
+        return Some(if is_zip {
+            CheckpointError::Sb3Archive(dir.to_owned())
+        } else {
+            CheckpointError::NotADir(dir.to_owned())
+        });
+    }
+    if dir.is_dir() && !dir.join(META_FILE).exists() {
+        let mut runs: Vec<PathBuf> = std::fs::read_dir(dir)
+            .ok()?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.join(META_FILE).is_file())
+            .collect();
+        runs.sort();
+        if !runs.is_empty() {
+            return Some(CheckpointError::FolderOfRuns {
+                dir: dir.to_owned(),
+                runs,
+            });
+        }
+    }
+    None
+}
+
 /// Reads and parses `checkpoint.json`.
 pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, CheckpointError> {
+    if let Some(err) = misplaced_checkpoint(dir) {
+        return Err(err);
+    }
     if !dir.is_dir() {
         return Err(CheckpointError::NoSuchDir(dir.to_owned()));
     }

@@ -138,6 +138,14 @@ struct Archive {
 impl Archive {
     fn read(path: &Path) -> Result<Self, Sb3Error> {
         use sha2::Digest;
+        if path.is_dir() {
+            return Err(Sb3Error::NotAnArchive {
+                path: path.to_owned(),
+                reason: "it is a folder; import-sb3 expects the .zip file that SB3's \
+                         `model.save()` wrote (e.g. sac_ant.zip)"
+                    .into(),
+            });
+        }
         let bytes = std::fs::read(path).map_err(|source| Sb3Error::Read {
             path: path.to_owned(),
             source,
