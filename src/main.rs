@@ -97,9 +97,10 @@ struct RolloutArgs {
     /// Episode k is reset with seed S + k.
     #[arg(long, default_value_t = 0, conflicts_with = "init_state")]
     seed: u64,
-    /// Truncate episodes after this many steps (default: the config's, 1000).
-    #[arg(long)]
-    max_steps: Option<usize>,
+    /// Truncate episodes after this many steps (500, the evaluation's limit, as everywhere a
+    /// policy runs; training alone uses the config's 1000).
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
     /// One JSON object per episode instead of a text line.
     #[arg(long, conflicts_with = "init_state")]
     json: bool,
@@ -640,9 +641,10 @@ fn run(cli: Cli) -> Result<()> {
 
 fn rollout_command(args: RolloutArgs) -> Result<()> {
     let mut config = args.env.load()?;
-    if let Some(max_steps) = args.max_steps {
-        config.env.max_episode_steps = max_steps;
+    if args.max_steps == 0 {
+        bail!("--max-steps must be at least 1");
     }
+    config.env.max_episode_steps = args.max_steps;
     if let Some(condition) = args.condition {
         config.damage.condition = ConditionChoice::Fixed(condition);
     }
@@ -693,7 +695,7 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
                 Some((state, condition)) => rollout::Start::State(state, *condition),
                 None => rollout::Start::Reset,
             };
-            let summary = rollout::run_policy_episode(
+            let (summary, fork_summary) = rollout::run_policy_episode(
                 &policy,
                 &config,
                 episode,
@@ -704,6 +706,12 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
             )
             .with_context(|| format!("episode {episode} (seed {seed})"))?;
             summary_line(&mut out, &args, &summary)?;
+            if let Some(fork) = &fork_summary {
+                if !args.json && !args.jsonl {
+                    write!(out, "  fork ")?;
+                }
+                summary_line(&mut out, &args, fork)?;
+            }
         }
         return Ok(());
     }
@@ -798,6 +806,11 @@ fn train_command(args: TrainArgs) -> Result<()> {
             bail!("--check is for a fresh run (a resumed run keeps its own options)");
         }
         train::check_ant(&opts)?;
+        eprintln!(
+            "note: training episodes end after {} steps (the config's env.max_episode_steps); \
+             eval, record, live, video and rollout run policies for 500 unless told otherwise",
+            opts.env.env.max_episode_steps
+        );
         // The task config at the top level, and the network and SAC settings the run would use.
         let mut resolved = serde_json::to_value(&opts.env)?;
         resolved["net"] = serde_json::to_value(&opts.net)?;

@@ -55,6 +55,9 @@ pub struct EpisodeSummary {
     pub episode_return: f64,
     /// First fatigue trigger step per joint, `None` if the joint never triggered.
     pub trigger_steps: BTreeMap<String, Option<usize>>,
+    /// `fork` for the counterfactual lane of `--fork-at` (absent for the main lane).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lane: Option<String>,
 }
 
 /// Runs one episode of a built-in policy. The env is reset with `seed` and the policy's RNG is
@@ -124,6 +127,7 @@ pub fn summarize(
         final_distance: last.distance,
         episode_return,
         trigger_steps,
+        lane: None,
     }
 }
 
@@ -392,7 +396,8 @@ pub enum Start<'a> {
 
 /// A deterministic episode of `policy` from `start` (the env seeded with `seed`), each step's
 /// line to `sink` (lane `main`), then the fork's steps from `fork.at` on (lane `fork`) if asked.
-/// Returns the main episode's summary.
+/// Returns the main episode's summary, and the fork lane's (its return counts the main lane's
+/// steps before the fork: both are whole episodes from the same reset).
 #[allow(clippy::too_many_arguments)]
 pub fn run_policy_episode(
     policy: &crate::policy::Policy,
@@ -402,7 +407,7 @@ pub fn run_policy_episode(
     start: Start,
     fork: Option<&Fork>,
     mut sink: impl FnMut(&LaneRecord) -> std::io::Result<()>,
-) -> Result<EpisodeSummary, ReplayError> {
+) -> Result<(EpisodeSummary, Option<EpisodeSummary>), ReplayError> {
     let mut env = AntEnv::new(config.clone(), seed)?;
     if let Some(fork) = fork {
         // Every edit names a joint this model has, before minutes of stepping.
@@ -420,16 +425,27 @@ pub fn run_policy_episode(
         obs,
     };
     let mut branch = None;
-    let (last, episode_return) = lane.run(policy, "main", &mut sink, |lane| {
+    // The main lane's return so far, for the fork's whole-episode return.
+    let main_return = std::cell::Cell::new(0.0);
+    let mut counted = |r: &LaneRecord| {
+        main_return.set(main_return.get() + r.record.reward);
+        sink(r)
+    };
+    let (last, episode_return) = lane.run(policy, "main", &mut counted, |lane| {
         if let Some(f) = fork
             && lane.env.steps() == f.at
         {
-            branch = Some((lane.env.snapshot(), lane.window.clone(), lane.obs));
+            branch = Some((
+                lane.env.snapshot(),
+                lane.window.clone(),
+                lane.obs,
+                main_return.get(),
+            ));
         }
     })?;
     let summary = summarize(&lane.env, episode, seed, &last, episode_return);
     if let Some(f) = fork {
-        let Some((snapshot, window, obs)) = branch else {
+        let Some((snapshot, window, obs, return_before)) = branch else {
             return Err(ReplayError::ForkBeyondEpisode {
                 at: f.at,
                 steps: summary.steps,
@@ -441,7 +457,16 @@ pub fn run_policy_episode(
             env.apply_edit(edit)?;
         }
         let mut fork_lane = PolicyLane { env, window, obs };
-        fork_lane.run(policy, "fork", &mut sink, |_| {})?;
+        let (fork_last, fork_return) = fork_lane.run(policy, "fork", &mut sink, |_| {})?;
+        let mut fork_summary = summarize(
+            &fork_lane.env,
+            episode,
+            seed,
+            &fork_last,
+            return_before + fork_return,
+        );
+        fork_summary.lane = Some("fork".into());
+        return Ok((summary, Some(fork_summary)));
     }
-    Ok(summary)
+    Ok((summary, None))
 }

@@ -68,6 +68,13 @@ fn json_summaries_have_one_object_per_episode() {
         "--json",
     ]);
     assert_eq!(out.stdout, again.stdout);
+    // The default step limit is the evaluation's 500 (a standing Ant never ends sooner).
+    let out = gaitscope(&["rollout", "--policy", "zero", "--episodes", "1", "--json"]);
+    let line: Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(
+        (line["steps"].as_u64(), line["truncated"].as_bool()),
+        (Some(500), Some(true))
+    );
 }
 
 #[test]
@@ -434,4 +441,42 @@ fn a_checkpoint_flag_given_an_sb3_zip_or_a_folder_of_runs_says_what_to_pass() {
         "/tmp/never",
     ]));
     assert!(e.contains("it is a folder") && e.contains(".zip"), "{e}");
+}
+
+/// A fork prints its own summary line after the main lane's, text and JSON alike.
+#[test]
+fn rollout_prints_the_fork_lanes_summary_too() {
+    let dir = env!("CARGO_MANIFEST_DIR").to_string() + "/checkpoints/encoder-lstm";
+    let base = [
+        "rollout",
+        "--checkpoint",
+        &dir,
+        "--fork-at",
+        "20",
+        "--fork",
+        "fail:ankle_3",
+    ];
+    let out = gaitscope(&[&base[..], &["--episodes", "1", "--condition", "severe"]].concat());
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 2, "{text}");
+    assert!(lines[0].starts_with("episode") && lines[1].trim_start().starts_with("fork episode"));
+    // The hand-failed joint never triggers by fatigue in the fork.
+    assert!(lines[1].contains("ankle_3@-"), "{text}");
+    let out = gaitscope(
+        &[
+            &base[..],
+            &["--episodes", "1", "--condition", "severe", "--json"],
+        ]
+        .concat(),
+    );
+    let objs: Vec<Value> = stdout(&out)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(objs.len(), 2);
+    assert!(objs[0].get("lane").is_none());
+    assert_eq!(objs[1]["lane"], "fork");
+    assert!(objs[1]["trigger_steps"]["ankle_3"].is_null());
 }
