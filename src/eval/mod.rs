@@ -665,11 +665,13 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         (0.0, max_d * 1.35),
     )?;
     let mut written = vec![json_path, success_path, distance_path];
-    written.extend(across_seeds_figures(
-        &report.across_seeds,
-        &conditions,
-        out,
-    )?);
+    if report.across_seeds.has_several_seeds() {
+        written.extend(across_seeds_figures(
+            &report.across_seeds,
+            &conditions,
+            out,
+        )?);
+    }
     Ok(written)
 }
 

@@ -450,7 +450,19 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
 
 impl AcrossSeeds {
     /// The tables of the evaluation across seeds, as Markdown.
+    /// Whether some model was evaluated with more than one training seed: only then do the
+    /// across-seed tables and seed-level tests mean anything.
+    pub fn has_several_seeds(&self) -> bool {
+        self.groups.iter().any(|g| g.runs.len() > 1)
+    }
+
     pub fn markdown(&self) -> String {
+        if !self.has_several_seeds() {
+            return "One training seed per model: the per-run tables above are the whole \
+                    story (the across-seed section needs several runs of a model, e.g. \
+                    `--checkpoint checkpoints/seeds/*-s*`).\n"
+                .to_string();
+        }
         let pct = |r: f64| format!("{:.0} %", 100.0 * r);
         let interval = |i: &Interval| {
             format!(
