@@ -13,6 +13,7 @@ pub mod eval;
 pub mod plots;
 pub mod policy;
 pub mod probe;
+pub mod progress;
 pub mod rollout;
 pub mod scenario;
 pub mod telemetry;

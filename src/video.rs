@@ -458,6 +458,13 @@ pub fn render_episode(
 ) -> Result<usize, VideoError> {
     let mut frames = 0;
     let mut forked = false;
+    // Frames up to the longest step limit (an episode can end sooner).
+    let limit = lanes
+        .iter()
+        .map(|l| l.env.config().env.max_episode_steps)
+        .max()
+        .unwrap_or(0);
+    let progress = crate::progress::bar(limit as u64, "video frames");
     while lanes.iter().any(|l| !l.done) {
         if let Some(f) = fork
             && !forked
@@ -473,7 +480,9 @@ pub fn render_episode(
         }
         encoder.push(&stitch(&lanes, spec, lane_spec))?;
         frames += 1;
+        progress.set_position(frames as u64);
     }
+    progress.finish_and_clear();
     if let Some(f) = fork
         && !forked
     {

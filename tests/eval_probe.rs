@@ -326,3 +326,70 @@ fn probe_cross_validates_several_seeds() {
     ]);
     assert!(String::from_utf8_lossy(&e.stderr).contains("--folds must be between 2 and"));
 }
+
+/// Long work shows a bar with ETA on a terminal (a pty from util-linux's `script`) and stays
+/// quiet when its stderr is piped.
+#[test]
+fn eval_and_probe_show_progress_on_a_terminal_only() {
+    let tmp = tempfile::tempdir().unwrap();
+    let enc = tmp.path().join("encoder");
+    save_model(&enc, EncoderKind::Lstm, 2);
+    let enc_s = enc.to_str().unwrap();
+    let out_s = tmp.path().join("out");
+    let out_s = out_s.to_str().unwrap();
+    let exe = env!("CARGO_BIN_EXE_gaitscope");
+    for (args, bar) in [
+        (
+            vec![
+                "eval",
+                "--checkpoint",
+                enc_s,
+                "--episodes",
+                "3",
+                "--max-steps",
+                "40",
+                "--out",
+                out_s,
+            ],
+            "eval episodes",
+        ),
+        (
+            vec![
+                "probe",
+                "--checkpoint",
+                enc_s,
+                "--episodes",
+                "3",
+                "--max-steps",
+                "80",
+                "--no-save",
+                "--out",
+                out_s,
+            ],
+            "probe episodes",
+        ),
+    ] {
+        let piped = gaitscope(&args);
+        assert!(
+            piped.status.success(),
+            "{}",
+            String::from_utf8_lossy(&piped.stderr)
+        );
+        let stderr = String::from_utf8_lossy(&piped.stderr);
+        assert!(!stderr.contains(bar), "piped: no bar: {stderr}");
+        let typescript = tmp.path().join("typescript");
+        let status = Command::new("script")
+            .arg("-qec")
+            .arg(format!("{exe} {}", args.join(" ")))
+            .arg(&typescript)
+            .stdout(std::process::Stdio::null())
+            .status()
+            .expect("util-linux `script` gives the command a terminal");
+        assert!(status.success());
+        let shown = std::fs::read_to_string(&typescript).unwrap();
+        assert!(
+            shown.contains(bar) && shown.contains('<'),
+            "on a terminal: {shown}"
+        );
+    }
+}

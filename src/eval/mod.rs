@@ -209,6 +209,10 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
     let mut runs: Vec<(String, u64, PathBuf)> = Vec::new();
     let mut episodes = Vec::new();
     let mut wall_time_s = BTreeMap::new();
+    let progress = crate::progress::bar(
+        (opts.checkpoints.len() * opts.conditions.len() * seeds.len()) as u64,
+        "eval episodes",
+    );
     for dir in &opts.checkpoints {
         let policy = Policy::load(dir, None)?;
         let mut label = model_label(dir);
@@ -253,7 +257,16 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
                     .par_chunks(chunk)
                     .enumerate()
                     .map(|(c, chunk_seeds)| {
-                        run_lockstep(&policy, &label, &config, condition, chunk_seeds, c * chunk)
+                        let run = run_lockstep(
+                            &policy,
+                            &label,
+                            &config,
+                            condition,
+                            chunk_seeds,
+                            c * chunk,
+                        );
+                        progress.inc(chunk_seeds.len() as u64);
+                        run
                     })
                     .collect()
             });
@@ -263,6 +276,7 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         }
         wall_time_s.insert(label, started.elapsed().as_secs_f64());
     }
+    progress.finish_and_clear();
     Ok(summarize(episodes, opts, seeds, wall_time_s))
 }
 

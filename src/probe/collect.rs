@@ -42,6 +42,10 @@ pub fn collect(
     let net = policy.net().clone();
     let mut steps = Vec::new();
     let mut episode = 0;
+    let progress = crate::progress::bar(
+        (episodes_per_condition * Condition::ALL.len()) as u64,
+        "probe episodes",
+    );
     for k in 0..episodes_per_condition {
         for condition in Condition::ALL {
             let mut config = policy.meta.env.clone();
@@ -81,7 +85,9 @@ pub fn collect(
                 }
             }
             episode += 1;
+            progress.inc(1);
         }
     }
+    progress.finish_and_clear();
     Ok(steps)
 }
