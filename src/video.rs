@@ -212,10 +212,14 @@ fn overlay(rgb: &mut [u8], spec: FrameSpec, label: &str, text: &str) -> Result<(
         .into_drawing_area();
     let size = (spec.height as f64 / 28.0).max(10.0);
     let style = ("sans-serif", size).into_font().color(&WHITE);
-    let lines: Vec<&str> = [label, text]
-        .into_iter()
-        .filter(|l| !l.is_empty())
-        .collect();
+    // Wrapped to the frame's width (a lane's half in a side-by-side video), word by word.
+    let max_width = spec.width.saturating_sub(12) as u32;
+    let mut lines: Vec<String> = Vec::new();
+    for paragraph in [label, text].into_iter().filter(|l| !l.is_empty()) {
+        lines.extend(wrap(paragraph, max_width, |s| {
+            root.estimate_text_size(s, &style).map_or(0, |(w, _)| w)
+        }));
+    }
     let strip = size * (0.3 + 1.3 * lines.len() as f64);
     root.draw(&Rectangle::new(
         [(0, 0), (spec.width as i32, strip as i32)],
@@ -228,6 +232,30 @@ fn overlay(rgb: &mut [u8], spec: FrameSpec, label: &str, text: &str) -> Result<(
             .map_err(|e| e.to_string())?;
     }
     root.present().map_err(|e| e.to_string())
+}
+
+/// Greedy word wrap of `text` into lines no wider than `max_width` by `width` (a single word
+/// wider than that stays whole on its own line).
+fn wrap(text: &str, max_width: u32, width: impl Fn(&str) -> u32) -> Vec<String> {
+    let mut lines = Vec::new();
+    let mut line = String::new();
+    for word in text.split(' ') {
+        let candidate = if line.is_empty() {
+            word.to_string()
+        } else {
+            format!("{line} {word}")
+        };
+        if width(&candidate) <= max_width || line.is_empty() {
+            line = candidate;
+        } else {
+            lines.push(std::mem::take(&mut line).trim_end().to_string());
+            line = word.to_string();
+        }
+    }
+    if !line.trim().is_empty() {
+        lines.push(line.trim_end().to_string());
+    }
+    lines
 }
 
 /// An ffmpeg process taking raw RGB frames on stdin, writing `tmp`.
@@ -441,7 +469,12 @@ impl VideoLane {
         self.window.push(&self.obs, &action);
         self.obs = out.obs;
         self.done = out.done();
-        self.frame = self.renderer.frame_with(&self.env, &self.label)?;
+        // The lane's last frame says how its episode ended; it stays up while others go on.
+        let label = match out.ending() {
+            Some(ending) => format!("{}  ·  ENDED: {}", self.label, ending.to_uppercase()),
+            None => self.label.clone(),
+        };
+        self.frame = self.renderer.frame_with(&self.env, &label)?;
         Ok(())
     }
 }
@@ -512,4 +545,23 @@ fn stitch(lanes: &[VideoLane], spec: FrameSpec, lane_spec: FrameSpec) -> Vec<u8>
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn captions_wrap_at_the_lanes_width() {
+        // Ten units a character: a 60-unit line holds six.
+        let width = |s: &str| 10 * s.chars().count() as u32;
+        let text = "damaged: hip_1, ankle_2, hip_3";
+        let lines = super::wrap(text, 160, width);
+        assert_eq!(lines, ["damaged: hip_1,", "ankle_2, hip_3"]);
+        assert!(lines.iter().all(|l| width(l) <= 160));
+        // A word longer than the line keeps a line of its own.
+        assert_eq!(
+            super::wrap("a verylongword b", 60, width),
+            ["a", "verylongword", "b"]
+        );
+        assert_eq!(super::wrap("fits", 60, width), ["fits"]);
+    }
 }
