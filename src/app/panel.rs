@@ -563,6 +563,8 @@ impl Panel {
                 });
             }
             if let Some(e) = &lane.last_event {
+                // egui's bundled fonts have no "→".
+                let e = &e.replace('→', "->");
                 ui.label(RichText::new(format!("last event: {e}")).weak());
             }
         }

@@ -355,6 +355,13 @@ pub fn layout_with(world_roots: &[String], titles: &[String], plot_roots: &[Stri
     .with_selection_panel(
         rerun::blueprint::SelectionPanel::new()
             .with_state(rerun::blueprint::components::PanelState::Collapsed),
+    )
+    // On the step timeline, following the latest data: live, the views show now; a file
+    // opens at its end, where the damage it recorded is in the legs (scrub back from there).
+    .with_time_panel(
+        rerun::blueprint::TimePanel::new()
+            .with_timeline("step")
+            .with_play_state(rerun::blueprint::components::PlayState::Following),
     );
     Layout {
         blueprint,
