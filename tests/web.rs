@@ -346,6 +346,15 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             .unwrap();
         let s = state(&client).await;
         assert_eq!(s["paused"], true);
+        // The joint table names the model it shows.
+        let heading = client
+            .find(Locator::Id("joints-model"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert_eq!(heading, "encoder-lstm");
         assert_eq!(lane_step(&s), 0);
 
         // Pause is on: "Step" with 5 advances exactly 5 env steps.
