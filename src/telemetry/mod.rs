@@ -11,6 +11,7 @@
 //! | `{root}/world/torso` | Ellipsoids3D | radius static; pose per step |
 //! | `{root}/world/floor`, `{root}/world/goal`, `{root}/world/goal/radius` | Boxes3D, Ellipsoids3D, LineStrips3D | static |
 //! | `{root}/world/trail` | LineStrips3D (torso path, every 5th step) | every 5 steps |
+//! | `{root}/world/ending` | Points3D labelled with how the lane's episode ended, above the Ant | at the end; cleared at the next episode |
 //! | `{root}/world/focus` | LineStrips3D, a faint 2.5 m ring on the floor under the torso: what the 3-D view's camera tracks (its size sets the framing) | per step |
 //! | `{root}/joints/fatigue`, `{root}/joints/scale` | Scalars × 8 (series named by joint, actuator order) | per step |
 //! | `{root}/joints/threshold` | Scalars | episode start and end |
