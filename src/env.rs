@@ -787,6 +787,27 @@ mod tests {
         actions.iter().map_while(|a| env.step(a).ok()).collect()
     }
 
+    /// An episode's ending in words: a timeout at the step limit, a fall when the torso leaves
+    /// the healthy range, nothing while it goes on.
+    #[test]
+    fn endings_name_how_an_episode_stopped() {
+        let mut config = GaitConfig::default();
+        config.env.max_episode_steps = 5;
+        let mut env = AntEnv::new(config, 0).unwrap();
+        env.reset_with_seed(1);
+        let outs = run(&mut env, &[[0.0; N_ACTUATORS]; 5]);
+        assert!(outs[..4].iter().all(|o| o.ending().is_none()));
+        assert_eq!(outs[4].ending(), Some("timeout"));
+        // The same step with the torso forced out of the healthy z range: a fall.
+        let mut config = GaitConfig::default();
+        config.env.healthy_z_range = [0.9, 1.0];
+        let mut env = AntEnv::new(config, 0).unwrap();
+        env.reset_with_seed(1);
+        let out = env.step(&[0.0; N_ACTUATORS]).unwrap();
+        assert!(out.terminated && !out.success);
+        assert_eq!(out.ending(), Some("fell"));
+    }
+
     /// Foot contacts against MuJoCo's contact list read here by geom name, on stepped states
     /// where both touching and lifted feet occur.
     #[test]
