@@ -102,6 +102,26 @@ fn short_runs_of_every_encoder_write_loadable_checkpoints_and_resume() {
         assert_eq!(resumes[1]["buffer"], "refilled");
         assert_eq!(resumes[1]["step"], 320);
         assert_eq!(resumes[1]["refill_transitions"], 320);
+        if encoder == "none" {
+            // eval names a run whose buffer was refilled.
+            let out = gaitscope(&[
+                "eval",
+                "--checkpoint",
+                dir_s,
+                "--episodes",
+                "1",
+                "--max-steps",
+                "20",
+            ]);
+            assert!(out.status.success(), "{}", stderr(&out));
+            let text = String::from_utf8_lossy(&out.stdout);
+            assert!(
+                text.contains(
+                    "none resumed with a refilled replay buffer at step 320 (320 transitions"
+                ),
+                "{text}"
+            );
+        }
     }
 }
 

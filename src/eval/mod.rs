@@ -166,6 +166,10 @@ pub struct EvalReport {
     pub across_seeds: seeds::AcrossSeeds,
     /// Seconds spent per model.
     pub wall_time_s: BTreeMap<String, f64>,
+    /// Runs that resumed with a refilled replay buffer (train_state.json's `resumes`), by label:
+    /// their training was interrupted and their buffer rebuilt, which a reader should know.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub refilled_runs: BTreeMap<String, Vec<crate::train::ResumeRecord>>,
     pub episodes: Vec<EpisodeRecord>,
 }
 
@@ -209,6 +213,7 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
     let mut runs: Vec<(String, u64, PathBuf)> = Vec::new();
     let mut episodes = Vec::new();
     let mut wall_time_s = BTreeMap::new();
+    let mut refilled_runs = BTreeMap::new();
     let progress = crate::progress::bar(
         (opts.checkpoints.len() * opts.conditions.len() * seeds.len()) as u64,
         "eval episodes",
@@ -274,10 +279,21 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
                 episodes.extend(batch?);
             }
         }
+        // A run folder without train_state.json (an import) has no resumes to report.
+        let refills: Vec<crate::train::ResumeRecord> = crate::train::read_resumes(dir)
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|r| r.buffer == crate::train::BufferSource::Refilled)
+            .collect();
+        if !refills.is_empty() {
+            refilled_runs.insert(label.clone(), refills);
+        }
         wall_time_s.insert(label, started.elapsed().as_secs_f64());
     }
     progress.finish_and_clear();
-    Ok(summarize(episodes, opts, seeds, wall_time_s))
+    let mut report = summarize(episodes, opts, seeds, wall_time_s);
+    report.refilled_runs = refilled_runs;
+    Ok(report)
 }
 
 /// Runs one episode per seed, all stepping together, one batched policy call per step.
@@ -482,6 +498,7 @@ fn summarize(
         comparisons,
         recovery_fraction: rf,
         wall_time_s,
+        refilled_runs: BTreeMap::new(),
         episodes,
     }
 }
@@ -578,6 +595,24 @@ impl EvalReport {
             }
         }
         s += "\n";
+        for (label, refills) in &self.refilled_runs {
+            let what: Vec<String> = refills
+                .iter()
+                .map(|r| {
+                    format!(
+                        "at step {} ({} transitions from the policy of that step)",
+                        r.step, r.refill_transitions
+                    )
+                })
+                .collect();
+            s += &format!(
+                "Note: {label} resumed with a refilled replay buffer {}.\n",
+                what.join(", ")
+            );
+        }
+        if !self.refilled_runs.is_empty() {
+            s += "\n";
+        }
         s += &self.across_seeds.markdown();
         s
     }
@@ -805,6 +840,7 @@ mod tests {
             recovery_fraction: BTreeMap::from([("encoder".to_string(), rf)]),
             wall_time_s: BTreeMap::new(),
             across_seeds: seeds::across_seeds(&[], &[]),
+            refilled_runs: BTreeMap::new(),
             episodes: Vec::new(),
         }
     }
