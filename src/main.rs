@@ -674,7 +674,8 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
         bail!("--episodes must be at least 1");
     }
     if let Some(dir) = &args.checkpoint {
-        let policy = gaitscope::policy::Policy::load(dir, None)?;
+        // The checkpoint runs in its own world (lane::Actor::world), with this condition and limit.
+        let actor = gaitscope::lane::Actor::load(dir)?;
         let fork = fork_option(args.fork_at, args.fork.as_deref())?;
         let init = match &args.init_state {
             Some(path) => {
@@ -696,7 +697,7 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
                 None => rollout::Start::Reset,
             };
             let (summary, fork_summary) = rollout::run_policy_episode(
-                &policy,
+                &actor,
                 &config,
                 episode,
                 seed,
@@ -1144,29 +1145,23 @@ fn video_command(args: VideoArgs) -> Result<()> {
     if args.max_steps == 0 {
         bail!("--max-steps must be at least 1");
     }
-    let policy = args
-        .checkpoint
-        .as_deref()
-        .map(|dir| gaitscope::policy::Policy::load(dir, None))
-        .transpose()?;
+    // Each model runs in its own world (lane::Actor::world) under this condition and limit.
+    let actor = match &args.checkpoint {
+        Some(dir) => gaitscope::lane::Actor::load(dir)?,
+        None => gaitscope::lane::Actor::Builtin(args.policy),
+    };
     let mut config = args.env.load()?;
-    if let Some(p) = &policy {
-        config = GaitConfig {
-            damage: gaitscope::config::DamageConfig {
-                scenario: config.damage.scenario.clone(),
-                ..p.meta.env.damage.clone()
-            },
-            ..p.meta.env.clone()
-        };
-    }
     config.env.max_episode_steps = args.max_steps;
     config.damage.condition = ConditionChoice::Fixed(args.condition);
     let compare = args
         .compare
         .as_deref()
-        .map(|dir| gaitscope::policy::Policy::load(dir, None))
+        .map(gaitscope::lane::Actor::load)
         .transpose()?;
     let fork = fork_option(args.fork_at, args.fork.as_deref())?;
+    if let Some(f) = &fork {
+        f.validate(&actor.world(&config))?;
+    }
     // Side by side: two lanes, each half the width (kept even for the encoder).
     let two = compare.is_some() || fork.is_some();
     let lane_spec = if two {
@@ -1194,18 +1189,16 @@ fn video_command(args: VideoArgs) -> Result<()> {
     };
     let mut lanes = vec![VideoLane::new(
         first_label,
-        config.clone(),
-        policy,
-        args.policy,
+        actor,
+        &config,
         args.seed,
         lane_spec,
     )?];
-    if let Some(p) = compare {
+    if let Some(other) = compare {
         lanes.push(VideoLane::new(
             label_of(&args.compare),
-            config,
-            Some(p),
-            args.policy,
+            other,
+            &config,
             args.seed,
             lane_spec,
         )?);
@@ -1356,11 +1349,21 @@ fn probe_command(args: ProbeArgs) -> Result<()> {
         if !policy.net().encoder.uses_window() {
             return Err(probe::ProbeError::NoLatent(dir.clone()).into());
         }
-        policies.push(policy);
+        let actor = gaitscope::lane::Actor::Checkpoint {
+            dir: dir.clone(),
+            policy: Box::new(policy.clone()),
+        };
+        policies.push((actor, policy));
     }
     let baseline = match &args.baseline {
         Some(dir) => {
-            let base = gaitscope::policy::Policy::load(dir, Some(EncoderKind::None))?;
+            let base = gaitscope::lane::Actor::Checkpoint {
+                dir: dir.clone(),
+                policy: Box::new(gaitscope::policy::Policy::load(
+                    dir,
+                    Some(EncoderKind::None),
+                )?),
+            };
             Some(probe::collect(
                 &base,
                 args.episodes,
@@ -1372,10 +1375,10 @@ fn probe_command(args: ProbeArgs) -> Result<()> {
         None => None,
     };
     let mut report = probe::ProbeReport { runs: Vec::new() };
-    for (dir, policy) in args.checkpoints.iter().zip(&policies) {
+    for (dir, (actor, policy)) in args.checkpoints.iter().zip(&policies) {
         let label = gaitscope::eval::model_label(dir);
         let steps = probe::collect(
-            policy,
+            actor,
             args.episodes,
             args.max_steps,
             args.seed,

@@ -229,6 +229,8 @@ pub enum ReplayError {
     Policy(#[from] candle_core::Error),
     #[error("--fork-at {at} is beyond the episode, which ended after {steps} steps")]
     ForkBeyondEpisode { at: usize, steps: usize },
+    #[error(transparent)]
+    Lane(#[from] crate::lane::LaneError),
 }
 
 fn read_json<T: serde::de::DeserializeOwned>(
@@ -335,56 +337,8 @@ pub struct LaneRecord {
     pub action: Action,
 }
 
-/// A fork: from the exact state before step `at`, apply `edits` and run on.
-#[derive(Debug, Clone)]
-pub struct Fork {
-    pub at: usize,
-    pub edits: Vec<crate::damage::DamageEdit>,
-}
-
-/// One lane's live state: the env, the policy's context window, the current observation.
-struct PolicyLane {
-    env: AntEnv,
-    window: crate::window::ContextWindow,
-    obs: crate::env::Observation,
-}
-
-impl PolicyLane {
-    /// Deterministic policy steps to the end of the episode, each one's line to `sink` as lane
-    /// `name`; `before_step` sees the lane before every step. Returns the last step and the
-    /// episode's return over the steps run here.
-    fn run(
-        &mut self,
-        policy: &crate::policy::Policy,
-        name: &'static str,
-        sink: &mut impl FnMut(&LaneRecord) -> std::io::Result<()>,
-        mut before_step: impl FnMut(&PolicyLane),
-    ) -> Result<(StepOutcome, f64), ReplayError> {
-        let mut episode_return = 0.0;
-        loop {
-            before_step(self);
-            let decision = policy.act_one(
-                &self.obs,
-                &self.window,
-                crate::policy::ActionMode::Deterministic,
-                None,
-            )?;
-            let out = self.env.step(&decision.action)?;
-            self.window.push(&self.obs, &decision.action);
-            self.obs = out.obs;
-            episode_return += out.reward.total;
-            sink(&LaneRecord {
-                lane: name,
-                record: StepRecord::capture(&self.env, &out),
-                action: out.commanded_action,
-            })
-            .map_err(ReplayError::Write)?;
-            if out.done() {
-                return Ok((out, episode_return));
-            }
-        }
-    }
-}
+/// A counterfactual lane (`--fork-at K --fork EDITS`); see [`crate::lane::Fork`].
+pub use crate::lane::Fork;
 
 /// Where a policy episode starts: the reset with the episode's seed, or a given state.
 #[derive(Debug, Clone, Copy)]
@@ -394,79 +348,80 @@ pub enum Start<'a> {
     State(&'a InitState, Condition),
 }
 
-/// A deterministic episode of `policy` from `start` (the env seeded with `seed`), each step's
-/// line to `sink` (lane `main`), then the fork's steps from `fork.at` on (lane `fork`) if asked.
-/// Returns the main episode's summary, and the fork lane's (its return counts the main lane's
-/// steps before the fork: both are whole episodes from the same reset).
+/// A deterministic episode of `actor` in its world (see [`crate::lane::Actor::world`]) from
+/// `start` (the env seeded with `seed`), each step's line to `sink` (lane `main`), then the
+/// fork's steps from `fork.at` on (lane `fork`) if asked. Returns the main episode's summary,
+/// and the fork lane's (its return counts the main lane's steps before the fork: both are whole
+/// episodes from the same reset).
 #[allow(clippy::too_many_arguments)]
 pub fn run_policy_episode(
-    policy: &crate::policy::Policy,
-    config: &crate::config::GaitConfig,
+    actor: &crate::lane::Actor,
+    requested: &crate::config::GaitConfig,
     episode: usize,
     seed: u64,
     start: Start,
     fork: Option<&Fork>,
     mut sink: impl FnMut(&LaneRecord) -> std::io::Result<()>,
 ) -> Result<(EpisodeSummary, Option<EpisodeSummary>), ReplayError> {
-    let mut env = AntEnv::new(config.clone(), seed)?;
+    use crate::lane::Lane;
+    let mode = crate::policy::ActionMode::Deterministic;
     if let Some(fork) = fork {
-        // Every edit names a joint this model has, before minutes of stepping.
-        for edit in &fork.edits {
-            env.damage().resolve(&edit.target).map_err(EnvError::from)?;
-        }
+        // Every edit names a joint of this world's model, before minutes of stepping.
+        fork.validate(&actor.world(requested))?;
     }
-    let obs = match start {
-        Start::Reset => env.reset_with_seed(seed),
-        Start::State(init, condition) => env.reset_to_state(&init.qpos, &init.qvel, condition)?,
-    };
-    let mut lane = PolicyLane {
-        env,
-        window: crate::window::ContextWindow::new(policy.net().context_len),
-        obs,
-    };
-    let mut branch = None;
-    // The main lane's return so far, for the fork's whole-episode return.
-    let main_return = std::cell::Cell::new(0.0);
-    let mut counted = |r: &LaneRecord| {
-        main_return.set(main_return.get() + r.record.reward);
-        sink(r)
-    };
-    let (last, episode_return) = lane.run(policy, "main", &mut counted, |lane| {
-        if let Some(f) = fork
-            && lane.env.steps() == f.at
-        {
-            branch = Some((
-                lane.env.snapshot(),
-                lane.window.clone(),
-                lane.obs,
-                main_return.get(),
-            ));
-        }
-    })?;
-    let summary = summarize(&lane.env, episode, seed, &last, episode_return);
-    if let Some(f) = fork {
-        let Some((snapshot, window, obs, return_before)) = branch else {
-            return Err(ReplayError::ForkBeyondEpisode {
-                at: f.at,
-                steps: summary.steps,
-            });
+    let mut lane = Lane::new(actor, requested, seed)?;
+    if let Start::State(init, condition) = start {
+        lane.reset_to_state(&init.qpos, &init.qvel, condition)?;
+    }
+    // Steps the lane to its episode's end, each step's line to `sink`; the return.
+    let mut run =
+        |lane: &mut Lane, name: &'static str, stop_at: Option<usize>| -> Result<f64, ReplayError> {
+            let mut episode_return = 0.0;
+            while !lane.is_done() && stop_at.is_none_or(|k| lane.steps() < k) {
+                lane.advance(actor, mode)?;
+                let out = lane.last().expect("advance keeps the step's outcome");
+                episode_return += out.reward.total;
+                let record = LaneRecord {
+                    lane: name,
+                    record: StepRecord::capture(lane.env(), out),
+                    action: out.commanded_action,
+                };
+                sink(&record).map_err(ReplayError::Write)?;
+            }
+            Ok(episode_return)
         };
-        let mut env = AntEnv::new(config.clone(), seed)?;
-        env.restore(&snapshot)?;
-        for edit in &f.edits {
-            env.apply_edit(edit)?;
-        }
-        let mut fork_lane = PolicyLane { env, window, obs };
-        let (fork_last, fork_return) = fork_lane.run(policy, "fork", &mut sink, |_| {})?;
-        let mut fork_summary = summarize(
-            &fork_lane.env,
-            episode,
-            seed,
-            &fork_last,
-            return_before + fork_return,
-        );
-        fork_summary.lane = Some("fork".into());
-        return Ok((summary, Some(fork_summary)));
-    }
-    Ok((summary, None))
+    let before = run(&mut lane, "main", fork.map(|f| f.at))?;
+    let branch = fork
+        .filter(|f| !lane.is_done() && lane.steps() == f.at)
+        .map(|f| lane.fork(&f.edits))
+        .transpose()?;
+    let after = run(&mut lane, "main", None)?;
+    let last = lane
+        .last()
+        .cloned()
+        .ok_or_else(|| ReplayError::Env(EnvError::BadState("the episode took no step".into())))?;
+    let summary = summarize(lane.env(), episode, seed, &last, before + after);
+    let Some(f) = fork else {
+        return Ok((summary, None));
+    };
+    let Some(mut fork_lane) = branch else {
+        return Err(ReplayError::ForkBeyondEpisode {
+            at: f.at,
+            steps: summary.steps,
+        });
+    };
+    let fork_return = run(&mut fork_lane, "fork", None)?;
+    let fork_last = fork_lane
+        .last()
+        .cloned()
+        .ok_or_else(|| ReplayError::Env(EnvError::BadState("the fork took no step".into())))?;
+    let mut fork_summary = summarize(
+        fork_lane.env(),
+        episode,
+        seed,
+        &fork_last,
+        before + fork_return,
+    );
+    fork_summary.lane = Some("fork".into());
+    Ok((summary, Some(fork_summary)))
 }

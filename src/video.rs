@@ -364,47 +364,36 @@ impl Drop for Encoder {
     }
 }
 
-/// One model's episode in a video: its env, policy and renderer.
+/// One model's episode in a video: a lane of the stepping core and its renderer.
 pub struct VideoLane {
     pub label: String,
-    env: AntEnv,
-    policy: Option<crate::policy::Policy>,
-    builtin: crate::rollout::BuiltinPolicy,
-    window: crate::window::ContextWindow,
-    obs: crate::env::Observation,
-    rng: rand_chacha::ChaCha8Rng,
+    actor: crate::lane::Actor,
+    lane: crate::lane::Lane,
     renderer: FrameRenderer,
     /// The last frame (shown frozen once this lane's episode ended).
     frame: Vec<u8>,
-    done: bool,
 }
 
 impl VideoLane {
-    /// A lane reset with `seed`, rendered at `spec`.
+    /// A lane of `actor` in its own world (see [`crate::lane::Actor::world`]: a checkpoint's
+    /// task with `requested`'s condition, scenario and step limit), reset with `seed`, rendered
+    /// at `spec`.
     pub fn new(
         label: String,
-        config: crate::config::GaitConfig,
-        policy: Option<crate::policy::Policy>,
-        builtin: crate::rollout::BuiltinPolicy,
+        actor: crate::lane::Actor,
+        requested: &crate::config::GaitConfig,
         seed: u64,
         spec: FrameSpec,
     ) -> Result<Self, VideoError> {
-        let env_err = |e: crate::env::EnvError| VideoError::Render(e.to_string());
-        let mut env = AntEnv::new(config, seed).map_err(env_err)?;
-        let obs = env.reset_with_seed(seed);
-        let renderer = FrameRenderer::new(&env, spec)?;
-        let context_len = policy.as_ref().map_or(1, |p| p.net().context_len);
+        let lane = crate::lane::Lane::new(&actor, requested, seed)
+            .map_err(|e| VideoError::Render(e.to_string()))?;
+        let renderer = FrameRenderer::new(lane.env(), spec)?;
         Ok(Self {
             label,
-            env,
-            policy,
-            builtin,
-            window: crate::window::ContextWindow::new(context_len),
-            obs,
-            rng: crate::rollout::policy_rng(seed),
+            actor,
+            lane,
             renderer,
             frame: Vec::new(),
-            done: false,
         })
     }
 
@@ -414,67 +403,49 @@ impl VideoLane {
         edits: &[crate::damage::DamageEdit],
         spec: FrameSpec,
     ) -> Result<Self, VideoError> {
-        let env_err = |e: crate::env::EnvError| VideoError::Render(e.to_string());
-        let mut env = AntEnv::new(self.env.config().clone(), 0).map_err(env_err)?;
-        env.restore(&self.env.snapshot()).map_err(env_err)?;
-        for edit in edits {
-            env.apply_edit(edit).map_err(env_err)?;
-        }
-        let renderer = FrameRenderer::new(&env, spec)?;
+        let lane = self
+            .lane
+            .fork(edits)
+            .map_err(|e| VideoError::Render(e.to_string()))?;
+        let renderer = FrameRenderer::new(lane.env(), spec)?;
         let edits: Vec<String> = edits.iter().map(ToString::to_string).collect();
         Ok(Self {
-            label: format!("fork at step {}: {}", env.steps(), edits.join(",")),
-            env,
-            policy: self.policy.clone(),
-            builtin: self.builtin,
-            window: self.window.clone(),
-            obs: self.obs,
-            rng: self.rng.clone(),
+            label: format!("fork at step {}: {}", lane.steps(), edits.join(",")),
+            actor: self.actor.clone(),
+            lane,
             renderer,
             frame: self.frame.clone(),
-            done: self.done,
         })
     }
 
     pub fn steps(&self) -> usize {
-        self.env.steps()
+        self.lane.steps()
     }
 
     pub fn is_done(&self) -> bool {
-        self.done
+        self.lane.is_done()
+    }
+
+    /// The world this lane runs in.
+    pub fn world(&self) -> &crate::config::GaitConfig {
+        self.lane.env().config()
     }
 
     /// One env step (deterministic policy, or the built-in one) and its frame.
     fn step(&mut self) -> Result<(), VideoError> {
-        if self.done {
+        if self.lane.is_done() {
             return Ok(());
         }
-        let action = match &self.policy {
-            Some(p) => {
-                p.act_one(
-                    &self.obs,
-                    &self.window,
-                    crate::policy::ActionMode::Deterministic,
-                    None,
-                )
-                .map_err(|e| VideoError::Render(format!("policy: {e}")))?
-                .action
-            }
-            None => self.builtin.act(&mut self.rng).to_vec(),
-        };
         let out = self
-            .env
-            .step(&action)
+            .lane
+            .advance(&self.actor, crate::policy::ActionMode::Deterministic)
             .map_err(|e| VideoError::Render(e.to_string()))?;
-        self.window.push(&self.obs, &action);
-        self.obs = out.obs;
-        self.done = out.done();
         // The lane's last frame says how its episode ended; it stays up while others go on.
         let label = match out.ending() {
             Some(ending) => format!("{}  ·  ENDED: {}", self.label, ending.to_uppercase()),
             None => self.label.clone(),
         };
-        self.frame = self.renderer.frame_with(&self.env, &label)?;
+        self.frame = self.renderer.frame_with(self.lane.env(), &label)?;
         Ok(())
     }
 }
@@ -494,15 +465,15 @@ pub fn render_episode(
     // Frames up to the longest step limit (an episode can end sooner).
     let limit = lanes
         .iter()
-        .map(|l| l.env.config().env.max_episode_steps)
+        .map(|l| l.world().env.max_episode_steps)
         .max()
         .unwrap_or(0);
     let progress = crate::progress::bar(limit as u64, "video frames");
-    while lanes.iter().any(|l| !l.done) {
+    while lanes.iter().any(|l| !l.is_done()) {
         if let Some(f) = fork
             && !forked
             && lanes[0].steps() == f.at
-            && !lanes[0].done
+            && !lanes[0].is_done()
         {
             let lane = lanes[0].fork(&f.edits, lane_spec)?;
             lanes.push(lane);

@@ -178,3 +178,69 @@ fn a_policy_from_a_state_matches_the_replay_of_its_actions() {
         assert_eq!(&p, r);
     }
 }
+
+/// One rule for the world a checkpoint runs in, in every command: a checkpoint trained with
+/// joints that trigger at fatigue 10 triggers them at 10 under `rollout` (it ran in the default
+/// world, τ = 30, before the lane core).
+#[test]
+fn rollout_runs_a_checkpoint_in_its_own_world() {
+    use gaitscope::policy::checkpoint::TrainingRecord;
+    use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
+    let tmp = tempfile::tempdir().unwrap();
+    let mut trained = gaitscope::GaitConfig::default();
+    trained.damage.threshold = 10.0;
+    let net = NetConfig {
+        hidden: vec![16, 16],
+        z_dim: 4,
+        ..NetConfig::ant(EncoderKind::Lstm)
+    };
+    let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
+    let record = TrainingRecord {
+        env: trained,
+        sac: SacConfig::default(),
+        seed: 3,
+        steps_done: 0,
+        episodes_done: 0,
+        wall_time_s: 0.0,
+        imported_from: None,
+    };
+    model.save(tmp.path(), &record).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["rollout", "--checkpoint", tmp.path().to_str().unwrap()])
+        .args([
+            "--condition",
+            "severe",
+            "--episodes",
+            "1",
+            "--max-steps",
+            "300",
+            "--jsonl",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    // The first step at which any joint is triggered: its fatigue crossed 10, not 30.
+    let first = lines
+        .iter()
+        .find(|l| l["triggered"].as_array().unwrap().iter().any(|t| t == true))
+        .expect("a severe episode of 300 steps triggers a joint at τ = 10");
+    let i = first["triggered"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .position(|t| t == true)
+        .unwrap();
+    let fatigue = first["fatigue"][i].as_f64().unwrap();
+    assert!(
+        (10.0..30.0).contains(&fatigue),
+        "triggered at fatigue {fatigue}"
+    );
+}

@@ -168,3 +168,46 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
         .collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+/// `--compare` runs each model in its own world (the lane core's one rule): a second model
+/// trained with τ = 10 and a window of 8 gets those, not the first model's.
+#[test]
+fn compared_lanes_each_run_in_their_own_world() {
+    use gaitscope::lane::Actor;
+    use gaitscope::policy::checkpoint::TrainingRecord;
+    use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
+    use gaitscope::video::VideoLane;
+    let tmp = tempfile::tempdir().unwrap();
+    let save = |name: &str, threshold: f64, len: usize| {
+        let mut trained = GaitConfig::default();
+        trained.damage.threshold = threshold;
+        trained.context.len = len;
+        let net = NetConfig {
+            hidden: vec![16, 16],
+            z_dim: 4,
+            context_len: len,
+            ..NetConfig::ant(EncoderKind::Lstm)
+        };
+        let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
+        let record = TrainingRecord {
+            env: trained,
+            sac: SacConfig::default(),
+            seed: 3,
+            steps_done: 0,
+            episodes_done: 0,
+            wall_time_s: 0.0,
+            imported_from: None,
+        };
+        let dir = tmp.path().join(name);
+        model.save(&dir, &record).unwrap();
+        Actor::load(&dir).unwrap()
+    };
+    let requested = GaitConfig::default();
+    let a = VideoLane::new("a".into(), save("a", 30.0, 16), &requested, 0, SPEC).unwrap();
+    let b = VideoLane::new("b".into(), save("b", 10.0, 8), &requested, 0, SPEC).unwrap();
+    assert_eq!(a.world().damage.threshold, 30.0);
+    assert_eq!(
+        (b.world().damage.threshold, b.world().context.len),
+        (10.0, 8)
+    );
+}

@@ -240,13 +240,13 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         runs.push((group, train_seed, dir.clone()));
         let started = Instant::now();
         for &condition in &opts.conditions {
-            let mut config = policy.meta.env.clone();
+            let mut requested = GaitConfig::default();
             match condition {
-                Case::Condition(c) => config.damage.condition = ConditionChoice::Fixed(c),
+                Case::Condition(c) => requested.damage.condition = ConditionChoice::Fixed(c),
                 Case::Scenario(name) => {
                     // A scenario whose fatigue rule names no condition runs under severe.
-                    config.damage.condition = ConditionChoice::Fixed(Condition::Severe);
-                    config.damage.scenario = Some(
+                    requested.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+                    requested.damage.scenario = Some(
                         opts.scenarios
                             .iter()
                             .find(|s| s.name == name)
@@ -255,7 +255,9 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
                     );
                 }
             }
-            config.env.max_episode_steps = opts.max_steps;
+            requested.env.max_episode_steps = opts.max_steps;
+            // The checkpoint's own world with this case and limit (the lane core's one rule).
+            let config = crate::lane::checkpoint_world(&policy.meta.env, &requested);
             let chunk = seeds.len().div_ceil(opts.threads.max(1) * 2).max(1);
             let batches: Vec<Result<Vec<EpisodeRecord>, EvalError>> = pool.install(|| {
                 seeds

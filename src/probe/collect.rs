@@ -1,10 +1,10 @@
 //! Rollouts of an encoder policy across the three conditions, recording z, the raw
 //! observation and the truth at every step.
 
+use crate::config::GaitConfig;
 use crate::damage::{Condition, ConditionChoice, N_ACTUATORS};
-use crate::env::AntEnv;
-use crate::policy::{ActionMode, Policy};
-use crate::window::ContextWindow;
+use crate::lane::{Actor, Lane};
+use crate::policy::ActionMode;
 
 use super::ProbeError;
 
@@ -33,13 +33,12 @@ pub struct ProbeStep {
 /// records every step. Episodes get seeds `seed, seed + 1, …`, conditions interleaved. The
 /// window (592 numbers for the Ant) is kept on every `window_every`-th step (0: never).
 pub fn collect(
-    policy: &Policy,
+    actor: &Actor,
     episodes_per_condition: usize,
     max_steps: usize,
     seed: u64,
     window_every: usize,
 ) -> Result<Vec<ProbeStep>, ProbeError> {
-    let net = policy.net().clone();
     let mut steps = Vec::new();
     let mut episode = 0;
     let progress = crate::progress::bar(
@@ -48,23 +47,30 @@ pub fn collect(
     );
     for k in 0..episodes_per_condition {
         for condition in Condition::ALL {
-            let mut config = policy.meta.env.clone();
-            config.damage.condition = ConditionChoice::Fixed(condition);
-            config.env.max_episode_steps = max_steps;
-            let mut env = AntEnv::new(config, 0)?;
+            // The actor's own world (lane::Actor::world) under this condition and limit.
+            let mut requested = GaitConfig::default();
+            requested.damage.condition = ConditionChoice::Fixed(condition);
+            requested.env.max_episode_steps = max_steps;
             let episode_seed = seed + (k * Condition::ALL.len() + condition.index()) as u64;
-            let mut obs = env.reset_with_seed(episode_seed);
-            let mut window = ContextWindow::new(net.context_len);
-            loop {
-                let decision = policy.act_one(&obs, &window, ActionMode::Deterministic, None)?;
-                let out = env.step(&decision.action)?;
+            let mut lane = Lane::new(actor, &requested, episode_seed)?;
+            while !lane.is_done() {
+                // The observation and window the actor decides from, before the step.
+                let obs = lane.obs().to_vec();
+                let window = if window_every > 0 && lane.steps() % window_every == 0 {
+                    lane.window().as_slice().to_vec()
+                } else {
+                    Vec::new()
+                };
+                lane.advance(actor, ActionMode::Deterministic)?;
+                let (env, z) = (lane.env(), lane.z().map(<[f32]>::to_vec));
+                let Some(out) = lane.last() else { break };
                 let damage = env.damage();
                 steps.push(ProbeStep {
                     episode,
                     t: out.step,
                     condition,
-                    z: decision.z.clone().unwrap_or_default(),
-                    obs: obs.to_vec(),
+                    z: z.unwrap_or_default(),
+                    obs,
                     damaged: std::array::from_fn(|i| {
                         damage.triggered()[i] && damage.scale()[i] < 1.0
                     }),
@@ -72,17 +78,8 @@ pub fn collect(
                     first_trigger: damage.first_trigger_steps().iter().flatten().min().copied(),
                     joint_triggers: damage.first_trigger_steps(),
                     progress: out.reward.progress,
-                    window: if window_every > 0 && out.step % window_every == 0 {
-                        window.as_slice().to_vec()
-                    } else {
-                        Vec::new()
-                    },
+                    window,
                 });
-                window.push(&obs, &decision.action);
-                obs = out.obs;
-                if out.done() {
-                    break;
-                }
             }
             episode += 1;
             progress.inc(1);

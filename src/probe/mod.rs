@@ -41,6 +41,8 @@ pub enum ProbeError {
     Env(#[from] EnvError),
     #[error("policy inference failed: {0}")]
     Policy(#[from] candle_core::Error),
+    #[error(transparent)]
+    Lane(#[from] crate::lane::LaneError),
     #[error("{0} has no context encoder, so there is no z to probe")]
     NoLatent(PathBuf),
     #[error("fitting the {what} probe: {reason}")]

@@ -2,88 +2,17 @@
 //! model, all lanes in lockstep on the same seeds and the same hand-made damage, every step
 //! logged to Rerun.
 
-use rand::Rng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::StandardNormal;
 use rerun::RecordingStream;
-use std::path::PathBuf;
 
 use super::{AntLogger, EpisodeMeta, Sink, TelemetryError};
-use crate::config::{DamageConfig, EnvConfig, GaitConfig};
+use crate::config::GaitConfig;
 use crate::damage::{DamageEdit, JointOverride, N_ACTUATORS};
 use crate::env::{AntEnv, EnvSnapshot, Observation, StepOutcome};
-use crate::policy::{ActionMode, Policy};
-use crate::rollout::BuiltinPolicy;
+use crate::policy::ActionMode;
 use crate::window::ContextWindow;
 
-/// Who acts in a lane.
-#[derive(Clone)]
-pub enum Actor {
-    Checkpoint { dir: PathBuf, policy: Box<Policy> },
-    Builtin(BuiltinPolicy),
-}
-
-impl Actor {
-    /// Loads a checkpoint folder.
-    pub fn load(dir: &std::path::Path) -> Result<Self, crate::policy::checkpoint::CheckpointError> {
-        Ok(Actor::Checkpoint {
-            dir: dir.to_path_buf(),
-            policy: Box::new(Policy::load(dir, None)?),
-        })
-    }
-
-    /// The checkpoint folder's name, or the built-in policy's.
-    pub fn label(&self) -> String {
-        match self {
-            Actor::Checkpoint { dir, .. } => crate::eval::model_label(dir),
-            Actor::Builtin(p) => format!("{p:?}").to_lowercase(),
-        }
-    }
-
-    pub fn encoder(&self) -> String {
-        match self {
-            Actor::Checkpoint { policy, .. } => policy.net().encoder.to_string(),
-            Actor::Builtin(_) => "none (built-in policy)".into(),
-        }
-    }
-
-    pub fn checkpoint_dir(&self) -> Option<&std::path::Path> {
-        match self {
-            Actor::Checkpoint { dir, .. } => Some(dir),
-            Actor::Builtin(_) => None,
-        }
-    }
-
-    /// The env settings this actor runs under: a checkpoint's own task settings (it was trained
-    /// on them) with the requested condition and step limit; a built-in policy takes `requested`.
-    fn config(&self, requested: &GaitConfig) -> GaitConfig {
-        match self {
-            Actor::Checkpoint { policy, .. } => {
-                let trained = &policy.meta.env;
-                GaitConfig {
-                    damage: DamageConfig {
-                        condition: requested.damage.condition,
-                        scenario: requested.damage.scenario.clone(),
-                        ..trained.damage.clone()
-                    },
-                    env: EnvConfig {
-                        max_episode_steps: requested.env.max_episode_steps,
-                        ..trained.env.clone()
-                    },
-                    context: trained.context.clone(),
-                }
-            }
-            Actor::Builtin(_) => requested.clone(),
-        }
-    }
-
-    fn context_len(&self) -> usize {
-        match self {
-            Actor::Checkpoint { policy, .. } => policy.net().context_len,
-            Actor::Builtin(_) => 1,
-        }
-    }
-}
+pub use crate::lane::Actor;
 
 /// An actor and where its entities go.
 pub struct LaneSpec {
@@ -169,7 +98,7 @@ impl Lane {
         config: &GaitConfig,
         seed: u64,
     ) -> Result<Self, RecordError> {
-        let env = AntEnv::new(spec.actor.config(config), seed)?;
+        let env = AntEnv::new(spec.actor.world(config), seed)?;
         let probe = match spec.actor.checkpoint_dir() {
             Some(dir) if dir.join(crate::probe::PROBE_FILE).exists() => {
                 Some(crate::probe::ProbeFile::load(dir)?)
@@ -237,18 +166,9 @@ impl Lane {
     }
 
     fn decide(&mut self, mode: ActionMode) -> Result<(Vec<f64>, Option<Vec<f32>>), RecordError> {
-        match &self.actor {
-            Actor::Checkpoint { policy, .. } => {
-                let noise: Option<Vec<f32>> = (mode == ActionMode::Sampled).then(|| {
-                    (0..policy.net().act_dim)
-                        .map(|_| self.rng.sample(StandardNormal))
-                        .collect()
-                });
-                let d = policy.act_one(&self.obs, &self.window, mode, noise.as_deref())?;
-                Ok((d.action, d.z))
-            }
-            Actor::Builtin(p) => Ok((p.act(&mut self.rng).to_vec(), None)),
-        }
+        Ok(self
+            .actor
+            .decide(&self.obs, &self.window, &mut self.rng, mode)?)
     }
 
     pub fn actor(&self) -> &Actor {
@@ -612,7 +532,7 @@ impl Session {
         self.episode_start = self.global_step;
         if self.config_changed {
             for lane in &mut self.lanes {
-                lane.env = AntEnv::new(lane.actor.config(&self.config), seed)?;
+                lane.env = AntEnv::new(lane.actor.world(&self.config), seed)?;
             }
             self.config_changed = false;
         }
@@ -792,6 +712,8 @@ pub enum RecordError {
     #[error(transparent)]
     Telemetry(#[from] TelemetryError),
     #[error(transparent)]
+    Lane(#[from] crate::lane::LaneError),
+    #[error(transparent)]
     Env(#[from] crate::env::EnvError),
     #[error(transparent)]
     Probe(#[from] crate::probe::ProbeError),
@@ -833,7 +755,7 @@ pub fn record(
     if let (Some(fork), Some(actor)) = (&opts.fork, opts.actors.first()) {
         // Every edit names a joint this model has, and K is inside the step limit: checked
         // before the file is created.
-        let config = actor.config(&opts.config);
+        let config = actor.world(&opts.config);
         let env = AntEnv::new(config.clone(), opts.seed)?;
         for edit in &fork.edits {
             env.damage()

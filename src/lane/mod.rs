@@ -1,0 +1,443 @@
+//! The one stepping core (`../shared/DESIGN.md`): who acts ([`Actor`], which owns the one rule
+//! for the world a model runs in), a lane's whole state ([`Lane`]; its [`LaneState`] is the
+//! snapshot, the rewind point and the fork) and [`Lane::advance`]: decide → step → window push.
+//! Front-ends and sinks call `advance` and read what it left; none steps the sim its own way.
+//!
+//! Data one way: physics ([`crate::env`]) → damage → policy → lane → sinks → front-ends.
+
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use std::path::{Path, PathBuf};
+
+use crate::config::{DamageConfig, EnvConfig, GaitConfig};
+use crate::damage::DamageEdit;
+use crate::env::{AntEnv, EnvError, EnvSnapshot, Observation, StepOutcome};
+use crate::policy::{ActionMode, Policy};
+use crate::rollout::{BuiltinPolicy, policy_rng};
+use crate::window::ContextWindow;
+
+#[derive(Debug, thiserror::Error)]
+pub enum LaneError {
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error("policy inference failed: {0}")]
+    Policy(#[from] candle_core::Error),
+    #[error("--fork-at {at} is beyond the episodes' step limit ({limit})")]
+    ForkBeyondLimit { at: usize, limit: usize },
+}
+
+/// Who acts in a lane.
+#[derive(Clone)]
+pub enum Actor {
+    Checkpoint { dir: PathBuf, policy: Box<Policy> },
+    Builtin(BuiltinPolicy),
+}
+
+impl Actor {
+    /// Loads a checkpoint folder.
+    pub fn load(dir: &Path) -> Result<Self, crate::policy::checkpoint::CheckpointError> {
+        Ok(Actor::Checkpoint {
+            dir: dir.to_path_buf(),
+            policy: Box::new(Policy::load(dir, None)?),
+        })
+    }
+
+    /// The checkpoint folder's name, or the built-in policy's.
+    pub fn label(&self) -> String {
+        match self {
+            Actor::Checkpoint { dir, .. } => crate::eval::model_label(dir),
+            Actor::Builtin(p) => format!("{p:?}").to_lowercase(),
+        }
+    }
+
+    pub fn encoder(&self) -> String {
+        match self {
+            Actor::Checkpoint { policy, .. } => policy.net().encoder.to_string(),
+            Actor::Builtin(_) => "none (built-in policy)".into(),
+        }
+    }
+
+    pub fn checkpoint_dir(&self) -> Option<&Path> {
+        match self {
+            Actor::Checkpoint { dir, .. } => Some(dir),
+            Actor::Builtin(_) => None,
+        }
+    }
+
+    pub fn policy(&self) -> Option<&Policy> {
+        match self {
+            Actor::Checkpoint { policy, .. } => Some(policy),
+            Actor::Builtin(_) => None,
+        }
+    }
+
+    /// The world this actor runs in — the one rule, for every command: a checkpoint's own task
+    /// (model, reward, damage model, context: it was trained on them) with the caller's
+    /// condition, scenario and step limit; a built-in policy runs in the requested world.
+    pub fn world(&self, requested: &GaitConfig) -> GaitConfig {
+        match self {
+            Actor::Checkpoint { policy, .. } => checkpoint_world(&policy.meta.env, requested),
+            Actor::Builtin(_) => requested.clone(),
+        }
+    }
+
+    /// Steps of (observation, action) the actor reads.
+    pub fn context_len(&self) -> usize {
+        match self {
+            Actor::Checkpoint { policy, .. } => policy.net().context_len,
+            Actor::Builtin(_) => 1,
+        }
+    }
+
+    /// The action for `obs` after `window` (and z, for encoder policies); `rng` draws a built-in
+    /// policy's actions and a sampled policy's noise.
+    pub fn decide(
+        &self,
+        obs: &Observation,
+        window: &ContextWindow,
+        rng: &mut ChaCha8Rng,
+        mode: ActionMode,
+    ) -> Result<(Vec<f64>, Option<Vec<f32>>), LaneError> {
+        match self {
+            Actor::Checkpoint { policy, .. } => {
+                let noise: Option<Vec<f32>> = (mode == ActionMode::Sampled).then(|| {
+                    (0..policy.net().act_dim)
+                        .map(|_| rng.sample(StandardNormal))
+                        .collect()
+                });
+                let d = policy.act_one(obs, window, mode, noise.as_deref())?;
+                Ok((d.action, d.z))
+            }
+            Actor::Builtin(p) => Ok((p.act(rng).to_vec(), None)),
+        }
+    }
+}
+
+/// The world of a checkpoint trained in `trained` (see [`Actor::world`]), for callers that
+/// hold a bare [`Policy`] (eval's batched lanes).
+pub fn checkpoint_world(trained: &GaitConfig, requested: &GaitConfig) -> GaitConfig {
+    GaitConfig {
+        damage: DamageConfig {
+            condition: requested.damage.condition,
+            scenario: requested.damage.scenario.clone(),
+            ..trained.damage.clone()
+        },
+        env: EnvConfig {
+            max_episode_steps: requested.env.max_episode_steps,
+            ..trained.env.clone()
+        },
+        context: trained.context.clone(),
+    }
+}
+
+/// A counterfactual lane: the main lane's exact state before step `at`, with `edits` applied.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fork {
+    pub at: usize,
+    pub edits: Vec<DamageEdit>,
+}
+
+impl Fork {
+    /// Checked once, before any step, for every front-end: every edit names a joint of this
+    /// world's model, and step `at` lies inside its step limit.
+    pub fn validate(&self, world: &GaitConfig) -> Result<(), LaneError> {
+        let limit = world.env.max_episode_steps;
+        if self.at >= limit {
+            return Err(LaneError::ForkBeyondLimit { at: self.at, limit });
+        }
+        let env = AntEnv::new(world.clone(), 0)?;
+        for edit in &self.edits {
+            env.damage().resolve(&edit.target).map_err(EnvError::from)?;
+        }
+        Ok(())
+    }
+}
+
+/// A lane's whole state: cloning it is a snapshot; restoring it and stepping the same actions
+/// repeats every bit.
+#[derive(Clone)]
+pub struct LaneState {
+    env: EnvSnapshot,
+    window: ContextWindow,
+    obs: Observation,
+    rng: ChaCha8Rng,
+    last: Option<StepOutcome>,
+    z: Option<Vec<f32>>,
+    done: bool,
+}
+
+impl LaneState {
+    /// Env steps of the episode at the snapshot.
+    pub fn steps(&self) -> usize {
+        self.env.steps()
+    }
+}
+
+/// One episode being stepped: the env in the actor's world, the context window, the current
+/// observation, the actor's RNG, the latest step.
+pub struct Lane {
+    env: AntEnv,
+    window: ContextWindow,
+    obs: Observation,
+    rng: ChaCha8Rng,
+    last: Option<StepOutcome>,
+    z: Option<Vec<f32>>,
+    done: bool,
+}
+
+impl Lane {
+    /// A lane for `actor` in its world (see [`Actor::world`]), reset with `seed`.
+    pub fn new(actor: &Actor, requested: &GaitConfig, seed: u64) -> Result<Self, LaneError> {
+        let env = AntEnv::new(actor.world(requested), seed)?;
+        let mut lane = Self {
+            obs: env.observation(),
+            env,
+            window: ContextWindow::new(actor.context_len()),
+            rng: policy_rng(seed),
+            last: None,
+            z: None,
+            done: false,
+        };
+        lane.reset(seed);
+        Ok(lane)
+    }
+
+    /// A new episode from `seed` (the actor's RNG re-seeded from it too, so an episode is
+    /// reproducible on its own).
+    pub fn reset(&mut self, seed: u64) {
+        self.obs = self.env.reset_with_seed(seed);
+        self.window.clear();
+        self.rng = policy_rng(seed);
+        self.last = None;
+        self.z = None;
+        self.done = false;
+    }
+
+    /// A new episode from a given state (`rollout --init-state`).
+    pub fn reset_to_state(
+        &mut self,
+        qpos: &[f64],
+        qvel: &[f64],
+        condition: crate::damage::Condition,
+    ) -> Result<(), LaneError> {
+        self.obs = self.env.reset_to_state(qpos, qvel, condition)?;
+        self.window.clear();
+        self.last = None;
+        self.z = None;
+        self.done = false;
+        Ok(())
+    }
+
+    /// One env step: the actor decides, the env steps, the window takes the pair. Returns the
+    /// step's outcome (also kept as [`Self::last`]).
+    pub fn advance(&mut self, actor: &Actor, mode: ActionMode) -> Result<&StepOutcome, LaneError> {
+        let (action, z) = actor.decide(&self.obs, &self.window, &mut self.rng, mode)?;
+        let out = self.env.step(&action)?;
+        self.window.push(&self.obs, &action);
+        self.obs = out.obs;
+        self.z = z;
+        self.done = out.done();
+        Ok(self.last.insert(out))
+    }
+
+    /// The lane's state now (a snapshot, a rewind point).
+    pub fn state(&self) -> LaneState {
+        LaneState {
+            env: self.env.snapshot(),
+            window: self.window.clone(),
+            obs: self.obs,
+            rng: self.rng.clone(),
+            last: self.last.clone(),
+            z: self.z.clone(),
+            done: self.done,
+        }
+    }
+
+    /// Back to a state this lane (or one in the same world) had.
+    pub fn restore(&mut self, state: &LaneState) -> Result<(), LaneError> {
+        self.env.restore(&state.env)?;
+        self.window = state.window.clone();
+        self.obs = state.obs;
+        self.rng = state.rng.clone();
+        self.last = state.last.clone();
+        self.z = state.z.clone();
+        self.done = state.done;
+        Ok(())
+    }
+
+    /// A second lane from this one's exact state, `edits` applied before its next step.
+    pub fn fork(&self, edits: &[DamageEdit]) -> Result<Lane, LaneError> {
+        let mut env = AntEnv::new(self.env.config().clone(), 0)?;
+        env.restore(&self.env.snapshot())?;
+        for edit in edits {
+            env.apply_edit(edit)?;
+        }
+        Ok(Lane {
+            env,
+            window: self.window.clone(),
+            obs: self.obs,
+            rng: self.rng.clone(),
+            last: self.last.clone(),
+            z: self.z.clone(),
+            done: self.done,
+        })
+    }
+
+    pub fn env(&self) -> &AntEnv {
+        &self.env
+    }
+    pub fn env_mut(&mut self) -> &mut AntEnv {
+        &mut self.env
+    }
+    pub fn obs(&self) -> &Observation {
+        &self.obs
+    }
+    pub fn window(&self) -> &ContextWindow {
+        &self.window
+    }
+    /// The latest step's outcome (none right after a reset).
+    pub fn last(&self) -> Option<&StepOutcome> {
+        self.last.as_ref()
+    }
+    /// The latent the policy produced for the latest step (encoder policies).
+    pub fn z(&self) -> Option<&[f32]> {
+        self.z.as_deref()
+    }
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+    pub fn steps(&self) -> usize {
+        self.env.steps()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::damage::{Condition, ConditionChoice};
+    use crate::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
+
+    fn severe(max_steps: usize) -> GaitConfig {
+        let mut c = GaitConfig::default();
+        c.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+        c.env.max_episode_steps = max_steps;
+        c
+    }
+
+    /// An untrained LSTM checkpoint trained "in" a world with threshold 10 and window 8.
+    fn checkpoint(dir: &Path) -> Actor {
+        let mut trained = GaitConfig::default();
+        trained.damage.threshold = 10.0;
+        trained.context.len = 8;
+        let net = NetConfig {
+            hidden: vec![16, 16],
+            z_dim: 4,
+            context_len: 8,
+            ..NetConfig::ant(EncoderKind::Lstm)
+        };
+        let model = SacModel::new(net, 1.0, 5, &candle_core::Device::Cpu).unwrap();
+        let record = crate::policy::checkpoint::TrainingRecord {
+            env: trained,
+            sac: SacConfig::default(),
+            seed: 5,
+            steps_done: 0,
+            episodes_done: 0,
+            wall_time_s: 0.0,
+            imported_from: None,
+        };
+        model.save(dir, &record).unwrap();
+        Actor::load(dir).unwrap()
+    }
+
+    #[test]
+    fn a_checkpoint_runs_in_its_own_world_with_the_callers_condition_and_limit() {
+        let tmp = tempfile::tempdir().unwrap();
+        let actor = checkpoint(tmp.path());
+        let world = actor.world(&severe(123));
+        assert_eq!(world.damage.threshold, 10.0, "the trained threshold");
+        assert_eq!(world.context.len, 8, "the trained window");
+        assert_eq!(world.env.max_episode_steps, 123, "the caller's limit");
+        assert_eq!(
+            world.damage.condition,
+            ConditionChoice::Fixed(Condition::Severe)
+        );
+        // A built-in policy takes the requested world as it is.
+        let random = Actor::Builtin(BuiltinPolicy::Random);
+        assert_eq!(random.world(&severe(7)), severe(7));
+        // The lane is built in that world.
+        let lane = Lane::new(&actor, &severe(123), 1).unwrap();
+        assert_eq!(lane.env().config().damage.threshold, 10.0);
+        assert_eq!(lane.window().len(), 8);
+    }
+
+    #[test]
+    fn restoring_a_state_and_stepping_again_repeats_every_bit() {
+        let tmp = tempfile::tempdir().unwrap();
+        for actor in [
+            checkpoint(tmp.path()),
+            Actor::Builtin(BuiltinPolicy::Random),
+        ] {
+            for mode in [ActionMode::Deterministic, ActionMode::Sampled] {
+                let mut lane = Lane::new(&actor, &severe(200), 4).unwrap();
+                for _ in 0..20 {
+                    lane.advance(&actor, mode).unwrap();
+                }
+                let at = lane.state();
+                let run = |lane: &mut Lane| -> Vec<(Vec<f64>, [f64; 8], Option<Vec<f32>>)> {
+                    (0..30)
+                        .map_while(|_| {
+                            let out = lane.advance(&actor, mode).ok()?.clone();
+                            Some((
+                                out.obs.to_vec(),
+                                out.applied_action,
+                                lane.z().map(<[f32]>::to_vec),
+                            ))
+                        })
+                        .collect()
+                };
+                let first = run(&mut lane);
+                lane.restore(&at).unwrap();
+                assert_eq!(lane.steps(), 20);
+                assert_eq!(run(&mut lane), first, "{} {mode:?}", actor.label());
+                // A fork with no edits is the same lane.
+                lane.restore(&at).unwrap();
+                let mut fork = lane.fork(&[]).unwrap();
+                assert_eq!(run(&mut fork), first);
+            }
+        }
+    }
+
+    #[test]
+    fn a_fork_is_validated_against_the_world_before_any_step() {
+        let world = severe(100);
+        let edit = |s: &str| crate::damage::DamageEdit::parse_list(s).unwrap();
+        assert!(
+            Fork {
+                at: 10,
+                edits: edit("fail:ankle_3")
+            }
+            .validate(&world)
+            .is_ok()
+        );
+        assert!(matches!(
+            Fork {
+                at: 100,
+                edits: edit("fail:ankle_3")
+            }
+            .validate(&world),
+            Err(LaneError::ForkBeyondLimit {
+                at: 100,
+                limit: 100
+            })
+        ));
+        let err = Fork {
+            at: 10,
+            edits: edit("fail:knee_9"),
+        }
+        .validate(&world)
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("knee_9"), "{err}");
+    }
+}
