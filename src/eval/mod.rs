@@ -16,11 +16,10 @@ use std::time::Instant;
 
 use crate::config::GaitConfig;
 use crate::damage::{Condition, ConditionChoice, N_ACTUATORS};
-use crate::env::{AntEnv, EnvError};
+use crate::env::EnvError;
 use crate::plots::{self, ErrorBarSeries, PlotError};
 use crate::policy::checkpoint::{CheckpointError, write_atomic};
 use crate::policy::{ActionMode, EncoderKind, Policy};
-use crate::window::ContextWindow;
 use stats::{McNemar, Rate, mcnemar, recovery_fraction};
 
 /// What an evaluation cell runs under: a damage condition (fatigue as in training), or a
@@ -220,6 +219,10 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
     );
     for dir in &opts.checkpoints {
         let policy = Policy::load(dir, None)?;
+        let actor = crate::lane::Actor::Checkpoint {
+            dir: dir.clone(),
+            policy: Box::new(policy.clone()),
+        };
         let mut label = model_label(dir);
         while labels.contains(&label) {
             label.push('\'');
@@ -257,7 +260,7 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
             }
             requested.env.max_episode_steps = opts.max_steps;
             // The checkpoint's own world with this case and limit (the lane core's one rule).
-            let config = crate::lane::checkpoint_world(&policy.meta.env, &requested);
+            let config = actor.world(&requested);
             let chunk = seeds.len().div_ceil(opts.threads.max(1) * 2).max(1);
             let batches: Vec<Result<Vec<EpisodeRecord>, EvalError>> = pool.install(|| {
                 seeds
@@ -265,7 +268,7 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
                     .enumerate()
                     .map(|(c, chunk_seeds)| {
                         let run = run_lockstep(
-                            &policy,
+                            &actor,
                             &label,
                             &config,
                             condition,
@@ -300,62 +303,35 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
 
 /// Runs one episode per seed, all stepping together, one batched policy call per step.
 pub fn run_lockstep(
-    policy: &Policy,
+    actor: &crate::lane::Actor,
     label: &str,
     config: &GaitConfig,
     condition: Case,
     seeds: &[u64],
     first_episode: usize,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
+    use crate::lane::{Lane, advance_lockstep};
+    let Some(policy) = actor.policy() else {
+        return Err(EvalError::Options(format!("{label} is not a checkpoint")));
+    };
     let net = policy.net().clone();
-    let uses_window = net.encoder.uses_window();
-    let mut envs = seeds
+    let mut lanes = seeds
         .iter()
-        .map(|&s| AntEnv::new(config.clone(), s))
-        .collect::<Result<Vec<_>, _>>()?;
-    let mut windows: Vec<ContextWindow> = seeds
-        .iter()
-        .map(|_| ContextWindow::new(net.context_len))
-        .collect();
-    let mut obs: Vec<_> = envs
-        .iter_mut()
-        .zip(seeds)
-        .map(|(e, &s)| e.reset_with_seed(s))
-        .collect();
+        .map(|&s| Lane::new(actor, config, s))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| lane_error(label, e))?;
     let mut records: Vec<Option<EpisodeRecord>> = vec![None; seeds.len()];
     let mut returns = vec![0.0; seeds.len()];
-    let (mut obs_batch, mut window_batch) = (Vec::new(), Vec::new());
-    loop {
-        let active: Vec<usize> = (0..seeds.len()).filter(|&i| records[i].is_none()).collect();
-        if active.is_empty() {
-            break;
-        }
-        obs_batch.clear();
-        window_batch.clear();
-        for &i in &active {
-            obs_batch.extend(obs[i].iter().map(|&v| v as f32));
-            if uses_window {
-                window_batch.extend_from_slice(windows[i].as_slice());
-            }
-        }
-        let decisions = policy
-            .act_batch(
-                &obs_batch,
-                uses_window.then_some(&window_batch[..]),
-                ActionMode::Deterministic,
-                None,
-            )
-            .map_err(|source| EvalError::Policy {
-                model: label.to_string(),
-                source,
-            })?;
-        for (&i, decision) in active.iter().zip(decisions) {
-            let out = envs[i].step(&decision.action)?;
-            windows[i].push(&obs[i], &decision.action);
+    while lanes.iter().any(|l| !l.is_done()) {
+        advance_lockstep(actor, &mut lanes, ActionMode::Deterministic)
+            .map_err(|e| lane_error(label, e))?;
+        for (i, lane) in lanes.iter().enumerate() {
+            let (Some(out), None) = (lane.last(), &records[i]) else {
+                continue;
+            };
             returns[i] += out.reward.total;
-            obs[i] = out.obs;
             if out.done() {
-                let damage = envs[i].damage();
+                let damage = lane.env().damage();
                 records[i] = Some(EpisodeRecord {
                     model: label.to_string(),
                     group: seeds::group_of(label),
@@ -377,6 +353,18 @@ pub fn run_lockstep(
         }
     }
     Ok(records.into_iter().flatten().collect())
+}
+
+/// A lane error in eval's words: inference failures name the model.
+fn lane_error(label: &str, e: crate::lane::LaneError) -> EvalError {
+    match e {
+        crate::lane::LaneError::Policy(source) => EvalError::Policy {
+            model: label.to_string(),
+            source,
+        },
+        crate::lane::LaneError::Env(e) => EvalError::Env(e),
+        other => EvalError::Options(other.to_string()),
+    }
 }
 
 /// One model's episodes under one condition, in eval-seed order (the order pairs are made in).

@@ -156,7 +156,7 @@ impl Fork {
 
 /// A lane's whole state: cloning it is a snapshot; restoring it and stepping the same actions
 /// repeats every bit.
-#[derive(Clone)]
+#[derive(Debug, Clone)]
 pub struct LaneState {
     env: EnvSnapshot,
     window: ContextWindow,
@@ -203,6 +203,20 @@ impl Lane {
         Ok(lane)
     }
 
+    /// A lane in `actor`'s world that has not started an episode: done until [`Self::reset`].
+    pub fn unstarted(actor: &Actor, requested: &GaitConfig, seed: u64) -> Result<Self, LaneError> {
+        let env = AntEnv::new(actor.world(requested), seed)?;
+        Ok(Self {
+            obs: env.observation(),
+            env,
+            window: ContextWindow::new(actor.context_len()),
+            rng: policy_rng(seed),
+            last: None,
+            z: None,
+            done: true,
+        })
+    }
+
     /// A new episode from `seed` (the actor's RNG re-seeded from it too, so an episode is
     /// reproducible on its own).
     pub fn reset(&mut self, seed: u64) {
@@ -233,8 +247,13 @@ impl Lane {
     /// step's outcome (also kept as [`Self::last`]).
     pub fn advance(&mut self, actor: &Actor, mode: ActionMode) -> Result<&StepOutcome, LaneError> {
         let (action, z) = actor.decide(&self.obs, &self.window, &mut self.rng, mode)?;
-        let out = self.env.step(&action)?;
-        self.window.push(&self.obs, &action);
+        self.apply(&action, z)
+    }
+
+    /// The step half of [`Self::advance`], for an action decided elsewhere (a batch).
+    fn apply(&mut self, action: &[f64], z: Option<Vec<f32>>) -> Result<&StepOutcome, LaneError> {
+        let out = self.env.step(action)?;
+        self.window.push(&self.obs, action);
         self.obs = out.obs;
         self.z = z;
         self.done = out.done();
@@ -310,6 +329,43 @@ impl Lane {
     pub fn steps(&self) -> usize {
         self.env.steps()
     }
+}
+
+/// Advances every lane of `lanes` that is still running by one step: a checkpoint's
+/// deterministic actions come from one batched policy call (eval's lockstep, bit-identical to
+/// deciding lane by lane), anything else lane by lane.
+pub fn advance_lockstep(
+    actor: &Actor,
+    lanes: &mut [Lane],
+    mode: ActionMode,
+) -> Result<(), LaneError> {
+    let active: Vec<usize> = (0..lanes.len()).filter(|&i| !lanes[i].done).collect();
+    if active.is_empty() {
+        return Ok(());
+    }
+    match (actor.policy(), mode) {
+        (Some(policy), ActionMode::Deterministic) => {
+            let uses_window = policy.net().encoder.uses_window();
+            let (mut obs, mut windows) = (Vec::new(), Vec::new());
+            for &i in &active {
+                obs.extend(lanes[i].obs.iter().map(|&v| v as f32));
+                if uses_window {
+                    windows.extend_from_slice(lanes[i].window.as_slice());
+                }
+            }
+            let decisions =
+                policy.act_batch(&obs, uses_window.then_some(&windows[..]), mode, None)?;
+            for (&i, d) in active.iter().zip(decisions) {
+                lanes[i].apply(&d.action, d.z)?;
+            }
+        }
+        _ => {
+            for &i in &active {
+                lanes[i].advance(actor, mode)?;
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -406,6 +462,49 @@ mod tests {
                 assert_eq!(run(&mut fork), first);
             }
         }
+    }
+
+    #[test]
+    fn lockstep_batches_decide_as_lane_by_lane() {
+        // A batch of 3 takes another matmul path than a batch of 1, so z may differ in the last
+        // bit; over a few steps the two agree to float precision.
+        let tmp = tempfile::tempdir().unwrap();
+        let actor = checkpoint(tmp.path());
+        let seeds = [3u64, 4, 5];
+        let lanes = || -> Vec<Lane> {
+            seeds
+                .iter()
+                .map(|&s| Lane::new(&actor, &severe(60), s).unwrap())
+                .collect()
+        };
+        let (mut batched, mut single) = (lanes(), lanes());
+        for _ in 0..10 {
+            advance_lockstep(&actor, &mut batched, ActionMode::Deterministic).unwrap();
+            for lane in &mut single {
+                lane.advance(&actor, ActionMode::Deterministic).unwrap();
+            }
+            for (a, b) in batched.iter().zip(&single) {
+                let (za, zb) = (a.z().unwrap(), b.z().unwrap());
+                assert!(
+                    za.iter().zip(zb).all(|(x, y)| (x - y).abs() < 1e-5),
+                    "{za:?} {zb:?}"
+                );
+                let (oa, ob) = (a.last().unwrap(), b.last().unwrap());
+                assert!(
+                    oa.obs
+                        .iter()
+                        .zip(&ob.obs)
+                        .all(|(x, y)| (x - y).abs() < 1e-4)
+                );
+            }
+        }
+        // Lanes that ended are left alone.
+        let mut ended = lanes();
+        ended[1].done = true;
+        let before = ended[1].steps();
+        advance_lockstep(&actor, &mut ended, ActionMode::Deterministic).unwrap();
+        assert_eq!(ended[1].steps(), before);
+        assert_eq!(ended[0].steps(), 1);
     }
 
     #[test]

@@ -2,15 +2,13 @@
 //! model, all lanes in lockstep on the same seeds and the same hand-made damage, every step
 //! logged to Rerun.
 
-use rand_chacha::ChaCha8Rng;
 use rerun::RecordingStream;
 
 use super::{AntLogger, EpisodeMeta, Sink, TelemetryError};
 use crate::config::GaitConfig;
 use crate::damage::{DamageEdit, JointOverride, N_ACTUATORS};
-use crate::env::{AntEnv, EnvSnapshot, Observation, StepOutcome};
+use crate::env::{AntEnv, StepOutcome};
 use crate::policy::ActionMode;
-use crate::window::ContextWindow;
 
 pub use crate::lane::Actor;
 
@@ -40,20 +38,15 @@ pub const HISTORY_CAP: usize = 10_000;
 /// steps bit for bit.
 #[derive(Debug, Clone)]
 pub struct LaneSnapshot {
-    env: EnvSnapshot,
-    window: ContextWindow,
-    obs: Observation,
-    rng: ChaCha8Rng,
-    last: Option<StepOutcome>,
-    z: Option<Vec<f32>>,
+    /// The stepping core's state (env, window, observation, RNG, latest step).
+    state: crate::lane::LaneState,
     probe_now: Option<[f64; N_ACTUATORS]>,
-    done: bool,
 }
 
 impl LaneSnapshot {
     /// Env steps of the episode at the snapshot.
     pub fn steps(&self) -> usize {
-        self.env.steps()
+        self.state.steps()
     }
 }
 
@@ -65,15 +58,9 @@ pub struct Lane {
     base_root: String,
     /// That root's logger while a branch logs under its own.
     base_logger: Option<AntLogger>,
-    env: AntEnv,
+    /// The stepping core's lane: env, window, observation, RNG, latest step.
+    core: crate::lane::Lane,
     logger: AntLogger,
-    window: ContextWindow,
-    obs: Observation,
-    /// Built-in policies' actions and sampled actions' noise.
-    rng: ChaCha8Rng,
-    last: Option<StepOutcome>,
-    z: Option<Vec<f32>>,
-    done: bool,
     /// The probe's P(damaged) per joint before and after the latest step (with a probe.json).
     probe_before: Option<[f64; N_ACTUATORS]>,
     probe_now: Option<[f64; N_ACTUATORS]>,
@@ -98,30 +85,23 @@ impl Lane {
         config: &GaitConfig,
         seed: u64,
     ) -> Result<Self, RecordError> {
-        let env = AntEnv::new(spec.actor.world(config), seed)?;
+        // Not started: done until the session's first episode resets it.
+        let core = crate::lane::Lane::unstarted(&spec.actor, config, seed)?;
         let probe = match spec.actor.checkpoint_dir() {
             Some(dir) if dir.join(crate::probe::PROBE_FILE).exists() => {
                 Some(crate::probe::ProbeFile::load(dir)?)
             }
             _ => None,
         };
-        let logger = AntLogger::new(rec.clone(), &spec.root, &env, probe)
+        let logger = AntLogger::new(rec.clone(), &spec.root, core.env(), probe)
             .with_world_offset(spec.world_offset);
-        let window = ContextWindow::new(spec.actor.context_len());
-        let obs = env.observation();
         Ok(Self {
             actor: spec.actor,
             base_root: spec.root.clone(),
             base_logger: None,
             root: spec.root,
-            env,
+            core,
             logger,
-            window,
-            obs,
-            rng: crate::rollout::policy_rng(seed),
-            last: None,
-            z: None,
-            done: true,
             probe_before: None,
             probe_now: None,
             fork_of: None,
@@ -132,43 +112,25 @@ impl Lane {
     /// The lane's state now (see [`LaneSnapshot`]).
     pub fn snapshot(&self) -> LaneSnapshot {
         LaneSnapshot {
-            env: self.env.snapshot(),
-            window: self.window.clone(),
-            obs: self.obs,
-            rng: self.rng.clone(),
-            last: self.last.clone(),
-            z: self.z.clone(),
+            state: self.core.state(),
             probe_now: self.probe_now,
-            done: self.done,
         }
     }
 
     /// Puts the lane back into `snapshot`'s state, its drawing state (trails, logged events)
     /// with it.
     fn restore(&mut self, snapshot: &LaneSnapshot) -> Result<(), RecordError> {
-        self.env.restore(&snapshot.env)?;
-        self.window = snapshot.window.clone();
-        self.obs = snapshot.obs;
-        self.rng = snapshot.rng.clone();
-        self.last = snapshot.last.clone();
-        self.z = snapshot.z.clone();
+        self.core.restore(&snapshot.state)?;
         self.probe_before = snapshot.probe_now;
         self.probe_now = snapshot.probe_now;
-        self.done = snapshot.done;
         self.logger
-            .rewind_to(snapshot.steps(), self.env.damage().events().len());
+            .rewind_to(snapshot.steps(), self.core.env().damage().events().len());
         Ok(())
     }
 
     fn probe_readout(&self, z: Option<&[f32]>) -> Option<[f64; N_ACTUATORS]> {
         let p = self.logger.probe()?.joint_damage_probabilities(z?);
         (p.len() == N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
-    }
-
-    fn decide(&mut self, mode: ActionMode) -> Result<(Vec<f64>, Option<Vec<f32>>), RecordError> {
-        Ok(self
-            .actor
-            .decide(&self.obs, &self.window, &mut self.rng, mode)?)
     }
 
     pub fn actor(&self) -> &Actor {
@@ -178,27 +140,27 @@ impl Lane {
         &self.root
     }
     pub fn env(&self) -> &AntEnv {
-        &self.env
+        self.core.env()
     }
     /// The outcome of this episode's latest step (none right after a reset).
     pub fn last(&self) -> Option<&StepOutcome> {
-        self.last.as_ref()
+        self.core.last()
     }
     /// The latent the policy produced for the latest step (encoder policies).
     pub fn z(&self) -> Option<&[f32]> {
-        self.z.as_deref()
+        self.core.z()
     }
     pub fn probe(&self) -> Option<&crate::probe::ProbeFile> {
         self.logger.probe()
     }
     pub fn is_done(&self) -> bool {
-        self.done
+        self.core.is_done()
     }
     /// The damage events of the latest step: its triggers, and the edits that took effect with
     /// it (an event's `step` is the first step it shapes).
     pub fn step_events(&self) -> &[crate::damage::DamageEvent] {
-        let events = self.env.damage().events();
-        let Some(last) = &self.last else {
+        let events = self.core.env().damage().events();
+        let Some(last) = self.core.last() else {
             return &[];
         };
         let first = events
@@ -365,7 +327,7 @@ impl Session {
     /// the history it leaves, which stays in the recording, overlaid in the plots to compare.
     /// A fork lane ends.
     pub fn rewind(&mut self, step: usize) -> Result<(), RewindError> {
-        let now = self.lanes.first().map_or(0, |l| l.env.steps());
+        let now = self.lanes.first().map_or(0, |l| l.core.steps());
         if step == now && step == self.history.len() {
             return Ok(());
         }
@@ -384,14 +346,19 @@ impl Session {
         for (lane, state) in self.lanes.iter_mut().zip(&states) {
             lane.restore(state)?;
             let root = format!("{}_b{branch}", lane.base_root);
-            let mut logger = lane.logger.branch(&root, &lane.env);
+            let mut logger = lane.logger.branch(&root, lane.core.env());
             logger.set_time(self.global_step, episode);
-            let mut meta = episode_meta(self.fatigue_triggers, self.seed, &lane.actor, &lane.env);
+            let mut meta = episode_meta(
+                self.fatigue_triggers,
+                self.seed,
+                &lane.actor,
+                lane.core.env(),
+            );
             meta.checkpoint = format!(
                 "{} (branch {branch}: rewound to step {step})",
                 meta.checkpoint
             );
-            logger.log_episode(&meta, &lane.env, None)?;
+            logger.log_episode(&meta, lane.core.env(), None)?;
             logger.continue_from(&lane.logger);
             logger.log_note(
                 super::NoteLevel::Branch,
@@ -438,25 +405,26 @@ impl Session {
             world_offset: side_by_side_offset(self.lanes.len()),
         };
         let mut lane = Lane::new(spec, &self.rec, &self.config, self.seed)?;
-        lane.env.set_fatigue_triggers(self.fatigue_triggers);
-        lane.env.restore(&state.env)?;
+        lane.core
+            .env_mut()
+            .set_fatigue_triggers(self.fatigue_triggers);
+        lane.core.restore(&state.state)?;
         for edit in edits {
-            lane.env.apply_edit(edit)?;
+            lane.core.env_mut().apply_edit(edit)?;
         }
-        lane.window = state.window;
-        lane.obs = state.obs;
-        lane.rng = state.rng;
-        lane.last = state.last;
-        lane.z = state.z;
         lane.probe_now = state.probe_now;
         lane.probe_before = state.probe_now;
-        lane.done = state.done;
         lane.fork_of = Some(described.clone());
         let episode = self.episodes_started.saturating_sub(1);
         lane.logger.set_time(self.global_step, episode);
-        let mut meta = episode_meta(self.fatigue_triggers, self.seed, &lane.actor, &lane.env);
+        let mut meta = episode_meta(
+            self.fatigue_triggers,
+            self.seed,
+            &lane.actor,
+            lane.core.env(),
+        );
         meta.checkpoint = format!("{} ({described})", meta.checkpoint);
-        lane.logger.log_episode(&meta, &lane.env, None)?;
+        lane.logger.log_episode(&meta, lane.core.env(), None)?;
         // After the episode metadata, which starts a logger's trails afresh.
         lane.logger.continue_from(&self.lanes[0].logger);
         lane.logger.log_note(super::NoteLevel::Branch, &described)?;
@@ -532,7 +500,7 @@ impl Session {
         self.episode_start = self.global_step;
         if self.config_changed {
             for lane in &mut self.lanes {
-                lane.env = AntEnv::new(lane.actor.world(&self.config), seed)?;
+                lane.core = crate::lane::Lane::unstarted(&lane.actor, &self.config, seed)?;
             }
             self.config_changed = false;
         }
@@ -540,18 +508,15 @@ impl Session {
         let episode = self.episodes_started;
         self.episodes_started += 1;
         for lane in &mut self.lanes {
-            lane.env.set_fatigue_triggers(self.fatigue_triggers);
-            lane.obs = lane.env.reset_with_seed(seed);
-            lane.window.clear();
-            lane.rng = crate::rollout::policy_rng(seed);
-            lane.last = None;
-            lane.z = None;
-            lane.done = false;
+            lane.core
+                .env_mut()
+                .set_fatigue_triggers(self.fatigue_triggers);
+            lane.core.reset(seed);
             lane.probe_before = None;
             lane.probe_now = None;
             lane.logger.set_time(self.global_step, episode);
-            let meta = episode_meta(self.fatigue_triggers, seed, &lane.actor, &lane.env);
-            lane.logger.log_episode(&meta, &lane.env, None)?;
+            let meta = episode_meta(self.fatigue_triggers, seed, &lane.actor, lane.core.env());
+            lane.logger.log_episode(&meta, lane.core.env(), None)?;
         }
         Ok(())
     }
@@ -571,28 +536,30 @@ impl Session {
         let episode = self.episodes_started.saturating_sub(1);
         let mut ended = Vec::new();
         for i in 0..self.lanes.len() {
-            if self.lanes[i].done {
+            let lane = &mut self.lanes[i];
+            if lane.core.is_done() {
                 continue;
             }
-            let (action, z) = self.lanes[i].decide(self.mode)?;
-            let probe_now = self.lanes[i].probe_readout(z.as_deref());
-            let lane = &mut self.lanes[i];
+            // The stepping core steps; this loop only reads what it left, for the sinks.
+            let out = lane.core.advance(&lane.actor, self.mode)?.clone();
+            let z = lane.core.z().map(<[f32]>::to_vec);
+            let probe_now = lane.probe_readout(z.as_deref());
             lane.probe_before = lane.probe_now;
             lane.probe_now = probe_now;
             lane.stepped_at = self.global_step;
-            let out = lane.env.step(&action)?;
-            lane.window.push(&lane.obs, &action);
             lane.logger.set_time(self.global_step, episode);
-            lane.logger.log_step(&lane.env, &out, z.as_deref())?;
-            lane.obs = out.obs;
-            lane.z = z;
+            lane.logger.log_step(lane.core.env(), &out, z.as_deref())?;
             if out.done() {
-                lane.done = true;
-                let meta = episode_meta(self.fatigue_triggers, self.seed, &lane.actor, &lane.env);
-                lane.logger.log_episode(&meta, &lane.env, Some(&out))?;
+                let meta = episode_meta(
+                    self.fatigue_triggers,
+                    self.seed,
+                    &lane.actor,
+                    lane.core.env(),
+                );
+                lane.logger
+                    .log_episode(&meta, lane.core.env(), Some(&out))?;
                 ended.push(i);
             }
-            self.lanes[i].last = Some(out);
         }
         // A lane that ended while others run waits for them: its series stop here.
         if !self.is_over() {
@@ -607,7 +574,7 @@ impl Session {
 
     /// Whether every lane's episode has ended (true before the first episode too).
     pub fn is_over(&self) -> bool {
-        self.lanes.iter().all(|l| l.done)
+        self.lanes.iter().all(|l| l.core.is_done())
     }
 
     /// The same hand-made change to every lane (forks included); it applies from the next step
@@ -618,7 +585,7 @@ impl Session {
         change: JointOverride,
     ) -> Result<(), RecordError> {
         for lane in &mut self.lanes {
-            lane.env.apply_override(actuator, change)?;
+            lane.core.env_mut().apply_override(actuator, change)?;
         }
         Ok(())
     }
