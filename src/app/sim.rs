@@ -129,13 +129,8 @@ impl LaneView {
         let damage = env.damage();
         let states = std::array::from_fn(|i| damage.joint_state(i));
         let damaged = std::array::from_fn(|i| damage.triggered()[i] && damage.scale()[i] < 1.0);
-        let probe = match (lane.probe(), lane.z()) {
-            (Some(probe), Some(z)) => {
-                let p = probe.joint_damage_probabilities(z);
-                (p.len() == N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
-            }
-            _ => None,
-        };
+        // The readout the session computed once for this step (and logged).
+        let probe = lane.probe_now().copied();
         let last = lane.last();
         Self {
             label: lane.actor().label(),

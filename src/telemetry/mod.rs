@@ -881,11 +881,14 @@ impl AntLogger {
     }
 
     /// Everything about the state after one env step (timelines must be set first).
+    /// `readout`: the probe's P(damaged) per joint from this step's z, computed once by the
+    /// session (the panel and the page read the same value).
     pub fn log_step(
         &mut self,
         env: &AntEnv,
         out: &StepOutcome,
         z: Option<&[f32]>,
+        readout: Option<&[f64; N_ACTUATORS]>,
     ) -> Result<(), TelemetryError> {
         if !self.static_logged {
             self.log_static(env)?;
@@ -1081,14 +1084,17 @@ impl AntLogger {
                             .with_colors(trail.iter().map(|(_, c)| *c)),
                     )?;
                 }
-                let predicted = probe.joint_damage_probabilities(z);
-                let truth: Vec<f64> = (0..N_ACTUATORS)
-                    .map(|i| f64::from(u8::from(damage.triggered()[i] && damage.scale()[i] < 1.0)))
-                    .collect();
-                self.rec
-                    .log(self.path("probe/predicted").as_str(), &scalars(&predicted))?;
-                self.rec
-                    .log(self.path("probe/truth").as_str(), &scalars(&truth))?;
+                if let Some(predicted) = readout {
+                    let truth: Vec<f64> = (0..N_ACTUATORS)
+                        .map(|i| {
+                            f64::from(u8::from(damage.triggered()[i] && damage.scale()[i] < 1.0))
+                        })
+                        .collect();
+                    self.rec
+                        .log(self.path("probe/predicted").as_str(), &scalars(predicted))?;
+                    self.rec
+                        .log(self.path("probe/truth").as_str(), &scalars(&truth))?;
+                }
             }
         }
         Ok(())

@@ -548,7 +548,8 @@ impl Session {
             lane.probe_now = probe_now;
             lane.stepped_at = self.global_step;
             lane.logger.set_time(self.global_step, episode);
-            lane.logger.log_step(lane.core.env(), &out, z.as_deref())?;
+            lane.logger
+                .log_step(lane.core.env(), &out, z.as_deref(), lane.probe_now.as_ref())?;
             if out.done() {
                 let meta = episode_meta(
                     self.fatigue_triggers,
