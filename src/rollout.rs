@@ -82,23 +82,30 @@ pub fn run_builtin_episode_with(
     seed: u64,
     mut sink: impl FnMut(&LaneRecord) -> std::io::Result<()>,
 ) -> Result<EpisodeSummary, ReplayError> {
-    env.reset_with_seed(seed);
-    let mut policy_rng = policy_rng(seed);
+    let actor = crate::lane::Actor::Builtin(policy);
+    let mut lane = crate::lane::Lane::new(&actor, env.config(), seed)?;
     let mut episode_return = 0.0;
-    let last = loop {
-        let out = env.step(&policy.act(&mut policy_rng))?;
+    while !lane.is_done() {
+        lane.advance(&actor, crate::policy::ActionMode::Deterministic)?;
+        let out = lane.last().expect("advance keeps the step's outcome");
         episode_return += out.reward.total;
         sink(&LaneRecord {
+            episode,
+            seed,
             lane: "main",
-            record: StepRecord::capture(env, &out),
+            record: StepRecord::capture(lane.env(), out),
             action: out.commanded_action,
         })
         .map_err(ReplayError::Write)?;
-        if out.done() {
-            break out;
-        }
-    };
-    Ok(summarize(env, episode, seed, &last, episode_return))
+    }
+    let last = lane
+        .last()
+        .cloned()
+        .ok_or_else(|| ReplayError::Env(EnvError::BadState("the episode took no step".into())))?;
+    let summary = summarize(lane.env(), episode, seed, &last, episode_return);
+    // The caller's env ends where the episode did (callers read its damage and state).
+    env.restore(&lane.env().snapshot())?;
+    Ok(summary)
 }
 
 /// The summary of an episode that has just ended with `last`.
@@ -331,6 +338,9 @@ pub fn replay(
 /// for the counterfactual) and the commanded action.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct LaneRecord {
+    /// The episode (0, 1, …) and its reset seed, so several episodes' lines tell apart.
+    pub episode: usize,
+    pub seed: u64,
     pub lane: &'static str,
     #[serde(flatten)]
     pub record: StepRecord,
@@ -382,6 +392,8 @@ pub fn run_policy_episode(
                 let out = lane.last().expect("advance keeps the step's outcome");
                 episode_return += out.reward.total;
                 let record = LaneRecord {
+                    episode,
+                    seed,
                     lane: name,
                     record: StepRecord::capture(lane.env(), out),
                     action: out.commanded_action,

@@ -480,3 +480,31 @@ fn rollout_prints_the_fork_lanes_summary_too() {
     assert_eq!(objs[1]["lane"], "fork");
     assert!(objs[1]["trigger_steps"]["ankle_3"].is_null());
 }
+
+/// Several episodes' step lines tell apart: each names its episode and reset seed.
+#[test]
+fn jsonl_lines_carry_their_episode_and_seed() {
+    let out = gaitscope(&[
+        "rollout",
+        "--episodes",
+        "3",
+        "--seed",
+        "7",
+        "--max-steps",
+        "20",
+        "--jsonl",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let lines: Vec<Value> = stdout(&out)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    for k in 0..3u64 {
+        let of_k: Vec<&Value> = lines.iter().filter(|l| l["episode"] == k).collect();
+        assert!(!of_k.is_empty(), "episode {k} has lines");
+        assert!(of_k.iter().all(|l| l["seed"] == 7 + k));
+        // Its steps count from 0 in order.
+        let steps: Vec<u64> = of_k.iter().map(|l| l["step"].as_u64().unwrap()).collect();
+        assert_eq!(steps, (0..steps.len() as u64).collect::<Vec<_>>());
+    }
+}
