@@ -305,6 +305,16 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
         .map(Chunk::num_rows)
         .sum();
     assert_eq!(distance, 3, "every step reached the file");
+    // The saved file's legs: per-step colours only, each the damage palette of its step.
+    let chunks = common::recording_chunks({
+        let file = std::io::BufReader::new(std::fs::File::open(&save).unwrap());
+        re_log_encoding::DecoderApp::decode_lazy(file)
+            .map_while(Result::ok)
+            .collect::<Vec<_>>()
+    });
+    common::assert_no_static_shadowing(&chunks);
+    let threshold = GaitConfig::default().damage.threshold;
+    common::check_leg_colors(&chunks, &format!("/{}", LIVE_ROOTS[0]), threshold, &[]);
 }
 
 /// Two models live under severe damage, one joint pinned by hand: the stream's legs show each
