@@ -103,7 +103,8 @@ fn short_runs_of_every_encoder_write_loadable_checkpoints_and_resume() {
         assert_eq!(resumes[1]["step"], 320);
         assert_eq!(resumes[1]["refill_transitions"], 320);
         if encoder == "none" {
-            // eval names a run whose buffer was refilled.
+            // eval names a run whose buffer was refilled (its outputs in the temp folder).
+            let eval_out = tmp.path().join("eval");
             let out = gaitscope(&[
                 "eval",
                 "--checkpoint",
@@ -112,6 +113,8 @@ fn short_runs_of_every_encoder_write_loadable_checkpoints_and_resume() {
                 "1",
                 "--max-steps",
                 "20",
+                "--out",
+                eval_out.to_str().unwrap(),
             ]);
             assert!(out.status.success(), "{}", stderr(&out));
             let text = String::from_utf8_lossy(&out.stdout);

@@ -857,8 +857,12 @@ fn recorded_replay_dir(dir: &Path) -> Option<PathBuf> {
     serde_json::from_str::<TrainState>(&text).ok()?.replay_dir
 }
 
-/// Reads `replay.bin` into `replay` when it exists; a file that fails its checksum or holds a
-/// non-finite number is an error (delete it to refill), not a silent refill.
+/// Reads `replay.bin` into `replay` when it exists and belongs to this checkpoint. A buffer whose
+/// checksum does not match `train_state.json` is never used: it is set aside as
+/// `replay.bin.mismatched`, said so, and the buffer refilled (typically a buffer kept in
+/// `--replay-dir` by a trainer that went on past the checkpoint a fresh checkout holds). A file
+/// with no checksum to check (older runs) that fails to parse or holds a non-finite number is an
+/// error.
 fn restore_replay(
     path: &Path,
     crc32: Option<u32>,
@@ -887,9 +891,19 @@ fn restore_replay(
     if let Some(expected) = crc32 {
         let found = crc32fast::hash(&bytes);
         if found != expected {
-            return Err(refuse(format!(
-                "CRC-32 {found:08x} does not match train_state.json's {expected:08x} (corrupt, or from another run or save)"
-            )));
+            let aside = path.with_extension("bin.mismatched");
+            std::fs::rename(path, &aside).map_err(|e| TrainError::Io {
+                path: aside.clone(),
+                source: e,
+            })?;
+            eprintln!(
+                "note: {}: CRC-32 {found:08x} does not match train_state.json's {expected:08x} \
+                 (corrupt, or saved by another run or a later save of this one); not used, moved \
+                 to {}; the buffer will be refilled",
+                path.display(),
+                aside.display()
+            );
+            return Ok(());
         }
     }
     replay.read_from(&mut bytes.as_slice()).map_err(refuse)
@@ -1392,20 +1406,31 @@ mod tests {
         // resume_run rewrites metrics.jsonl (same lines) and nothing else.
         assert_eq!(now, expected);
 
-        // A NaN in replay.bin: the checksum refuses it, and so would the finite check.
+        // A NaN in replay.bin: without a checksum to go by (older runs) the finite check
+        // refuses it...
         let path = out.join(REPLAY_FILE);
         let mut bytes = std::fs::read(&path).unwrap();
         bytes[56..60].copy_from_slice(&f32::NAN.to_le_bytes());
         std::fs::write(&path, &bytes).unwrap();
-        let err = run(&out, 300, true).unwrap_err().to_string();
-        assert!(err.contains("does not match train_state.json"), "{err}");
-        assert!(err.contains("delete it"), "{err}");
         let mut replay = new_replay(&opts);
         let err = restore_replay(&path, None, &mut replay)
             .unwrap_err()
             .to_string();
         assert!(err.contains("NaN"), "{err}");
-        assert_eq!(state_of(&out).steps_done, 200);
+        // ... and with one it is set aside, never read, and the resume refills instead.
+        run(&out, 300, true).unwrap();
+        assert!(out.join("replay.bin.mismatched").exists());
+        let state = state_of(&out);
+        assert_eq!(state.steps_done, 300);
+        let resume = state.resumes.last().unwrap();
+        assert_eq!(
+            (
+                resume.buffer,
+                resume.restored_transitions,
+                resume.refill_transitions
+            ),
+            (BufferSource::Refilled, 0, 200)
+        );
     }
 
     #[test]
