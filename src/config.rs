@@ -8,6 +8,15 @@ use std::path::{Path, PathBuf};
 
 use crate::damage::ConditionChoice;
 
+/// Physics steps per env step, at most (Ant-v4: 5).
+pub const MAX_FRAME_SKIP: usize = 1_000;
+/// Steps an episode may last, at most.
+pub const MAX_EPISODE_STEPS: usize = 1_000_000;
+/// Context window length, at most (the paper's: 16).
+pub const MAX_CONTEXT_LEN: usize = 1_024;
+/// Goal coordinates, at most this far from the origin on each axis (m).
+pub const MAX_GOAL_M: f64 = 1_000.0;
+
 /// Everything that defines the damaged-Ant task.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(default, deny_unknown_fields)]
@@ -185,11 +194,25 @@ impl GaitConfig {
         if let Some((name, value)) = finite.iter().find(|(_, v)| !v.is_finite()) {
             return invalid(format!("{name} must be finite, got {value}"));
         }
-        if e.frame_skip == 0 {
-            return invalid("env.frame_skip must be at least 1".into());
+        // Upper bounds too: a huge frame_skip runs "forever", a huge window allocates
+        // gigabytes, a goal at 1e308 turns distances into infinities that poison training.
+        if !(1..=MAX_FRAME_SKIP).contains(&e.frame_skip) {
+            return invalid(format!(
+                "env.frame_skip must lie in 1..={MAX_FRAME_SKIP}, got {}",
+                e.frame_skip
+            ));
         }
-        if e.max_episode_steps == 0 {
-            return invalid("env.max_episode_steps must be at least 1".into());
+        if !(1..=MAX_EPISODE_STEPS).contains(&e.max_episode_steps) {
+            return invalid(format!(
+                "env.max_episode_steps must lie in 1..={MAX_EPISODE_STEPS}, got {}",
+                e.max_episode_steps
+            ));
+        }
+        if e.goal.iter().any(|g| g.abs() > MAX_GOAL_M) {
+            return invalid(format!(
+                "env.goal {:?} must lie within ±{MAX_GOAL_M} m (the floor is 80 m wide)",
+                e.goal
+            ));
         }
         if e.reset_noise_scale < 0.0 {
             return invalid(format!(
@@ -224,8 +247,11 @@ impl GaitConfig {
                 return invalid(format!("damage.scales.{name} must lie in [0, 1], got {s}"));
             }
         }
-        if self.context.len == 0 {
-            return invalid("context.len must be at least 1".into());
+        if !(1..=MAX_CONTEXT_LEN).contains(&self.context.len) {
+            return invalid(format!(
+                "context.len must lie in 1..={MAX_CONTEXT_LEN}, got {}",
+                self.context.len
+            ));
         }
         Ok(())
     }
@@ -233,6 +259,34 @@ impl GaitConfig {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn numbers_past_their_ranges_are_refused_with_the_range() {
+        let cases: [(&str, fn(&mut super::GaitConfig)); 4] = [
+            ("env.frame_skip must lie in 1..=1000", |c| {
+                c.env.frame_skip = 100_000_000
+            }),
+            ("context.len must lie in 1..=1024", |c| {
+                c.context.len = 100_000_000
+            }),
+            ("env.goal", |c| c.env.goal = [1e308, 1e308]),
+            ("env.max_episode_steps must lie in", |c| {
+                c.env.max_episode_steps = usize::MAX
+            }),
+        ];
+        for (says, edit) in cases {
+            let mut c = super::GaitConfig::default();
+            edit(&mut c);
+            let err = c.validate().unwrap_err().to_string();
+            assert!(err.contains(says), "{err}");
+        }
+        // The bounds themselves are allowed.
+        let mut c = super::GaitConfig::default();
+        c.env.frame_skip = super::MAX_FRAME_SKIP;
+        c.context.len = super::MAX_CONTEXT_LEN;
+        c.env.goal = [super::MAX_GOAL_M, -super::MAX_GOAL_M];
+        assert!(c.validate().is_ok());
+    }
+
     use super::*;
 
     #[test]

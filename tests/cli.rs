@@ -508,3 +508,36 @@ fn jsonl_lines_carry_their_episode_and_seed() {
         assert_eq!(steps, (0..steps.len() as u64).collect::<Vec<_>>());
     }
 }
+
+/// Numbers past their ranges are refused with the range, before anything runs.
+#[test]
+fn out_of_range_numbers_are_refused() {
+    let dir = env!("CARGO_MANIFEST_DIR").to_string() + "/checkpoints/baseline";
+    let huge = u64::MAX.to_string();
+    let e = stderr(&gaitscope(&[
+        "eval",
+        "--checkpoint",
+        &dir,
+        "--episodes",
+        &huge,
+    ]));
+    assert!(e.contains("--episodes must lie in 1..=100000"), "{e}");
+    let tmp = tempfile::tempdir().unwrap();
+    let config = write(
+        tmp.path(),
+        "c.json",
+        r#"{"env": {"frame_skip": 100000000}}"#,
+    );
+    let e = stderr(&gaitscope(&["rollout", "--config", &config]));
+    assert!(e.contains("env.frame_skip must lie in 1..=1000"), "{e}");
+    let config = write(tmp.path(), "g.json", r#"{"env": {"goal": [1e308, 1e308]}}"#);
+    let e = stderr(&gaitscope(&[
+        "train",
+        "--check",
+        "--config",
+        &config,
+        "--out",
+        "/tmp/never",
+    ]));
+    assert!(e.contains("env.goal"), "{e}");
+}

@@ -190,6 +190,9 @@ pub fn model_label(dir: &Path) -> String {
         .to_string()
 }
 
+/// Episodes per (model, condition) cell, at most.
+pub const MAX_EPISODES: usize = 100_000;
+
 /// Runs the evaluation (no files written; see [`write_outputs`]).
 pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
     if opts.checkpoints.is_empty()
@@ -200,6 +203,14 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         return Err(EvalError::Options(
             "need at least one checkpoint, episode, condition and step".into(),
         ));
+    }
+    if opts.episodes > MAX_EPISODES || opts.max_steps > crate::config::MAX_EPISODE_STEPS {
+        return Err(EvalError::Options(format!(
+            "--episodes must lie in 1..={MAX_EPISODES} and --max-steps in 1..={} (got {} and {})",
+            crate::config::MAX_EPISODE_STEPS,
+            opts.episodes,
+            opts.max_steps
+        )));
     }
     let seeds: Vec<u64> = (0..opts.episodes as u64)
         .map(|i| opts.seed_base + i)
