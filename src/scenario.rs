@@ -49,6 +49,82 @@ pub enum ScenarioError {
     UnknownSuite(String),
 }
 
+/// A scenario file's size, at most (the built-in ones are under 1 KB; `/dev/zero` is refused).
+pub const MAX_SCENARIO_BYTES: usize = 1 << 20;
+/// Edits in one scenario, at most.
+pub const MAX_SCENARIO_EDITS: usize = 10_000;
+
+/// Reads at most one byte more than [`MAX_SCENARIO_BYTES`], so an endless file stops there.
+fn read_capped(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut text = String::new();
+    std::fs::File::open(path)?
+        .take(MAX_SCENARIO_BYTES as u64 + 1)
+        .read_to_string(&mut text)?;
+    Ok(text)
+}
+
+/// A JSON value that refuses duplicate object keys.
+struct StrictValue(Value);
+
+impl<'de> serde::Deserialize<'de> for StrictValue {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl<'de> serde::de::Visitor<'de> for Visitor {
+            type Value = StrictValue;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("JSON")
+            }
+            fn visit_bool<E>(self, v: bool) -> Result<StrictValue, E> {
+                Ok(StrictValue(Value::Bool(v)))
+            }
+            fn visit_i64<E>(self, v: i64) -> Result<StrictValue, E> {
+                Ok(StrictValue(Value::from(v)))
+            }
+            fn visit_u64<E>(self, v: u64) -> Result<StrictValue, E> {
+                Ok(StrictValue(Value::from(v)))
+            }
+            fn visit_f64<E>(self, v: f64) -> Result<StrictValue, E> {
+                Ok(StrictValue(Value::from(v)))
+            }
+            fn visit_str<E>(self, v: &str) -> Result<StrictValue, E> {
+                Ok(StrictValue(Value::String(v.to_string())))
+            }
+            fn visit_string<E>(self, v: String) -> Result<StrictValue, E> {
+                Ok(StrictValue(Value::String(v)))
+            }
+            fn visit_unit<E>(self) -> Result<StrictValue, E> {
+                Ok(StrictValue(Value::Null))
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> Result<StrictValue, A::Error> {
+                let mut items = Vec::new();
+                while let Some(StrictValue(v)) = seq.next_element()? {
+                    items.push(v);
+                }
+                Ok(StrictValue(Value::Array(items)))
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut map: A,
+            ) -> Result<StrictValue, A::Error> {
+                let mut object = serde_json::Map::new();
+                while let Some(key) = map.next_key::<String>()? {
+                    if object.contains_key(&key) {
+                        return Err(serde::de::Error::custom(format!("duplicate key \"{key}\"")));
+                    }
+                    let StrictValue(v) = map.next_value()?;
+                    object.insert(key, v);
+                }
+                Ok(StrictValue(Value::Object(object)))
+            }
+        }
+        d.deserialize_any(Visitor)
+    }
+}
+
 /// Whether the fatigue rule runs during a scenario.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FatigueRule {
@@ -312,7 +388,22 @@ impl Scenario {
             origin: origin.to_string(),
             reason,
         };
-        let source: Value = serde_json::from_str(text).map_err(|e| invalid(e.to_string()))?;
+        if text.len() > MAX_SCENARIO_BYTES {
+            return Err(invalid(format!(
+                "{} bytes, more than the {MAX_SCENARIO_BYTES} a scenario may have",
+                text.len()
+            )));
+        }
+        // Duplicate keys are refused (serde_json would keep the last one silently).
+        let source: Value = serde_json::from_str::<StrictValue>(text)
+            .map_err(|e| invalid(e.to_string()))?
+            .0;
+        let edit_count = source["edits"].as_array().map_or(0, Vec::len);
+        if edit_count > MAX_SCENARIO_EDITS {
+            return Err(invalid(format!(
+                "{edit_count} edits, more than the {MAX_SCENARIO_EDITS} a scenario may have"
+            )));
+        }
         let raw: RawScenario =
             serde_json::from_value(source.clone()).map_err(|e| invalid(e.to_string()))?;
         if raw.name.trim().is_empty() {
@@ -354,7 +445,7 @@ impl Scenario {
             return Self::from_json(text, name);
         }
         let path = Path::new(name_or_path);
-        let text = std::fs::read_to_string(path).map_err(|e| ScenarioError::Read {
+        let text = read_capped(path).map_err(|e| ScenarioError::Read {
             path: name_or_path.to_string(),
             reason: if path.extension().is_none() && !path.exists() {
                 format!(
@@ -615,6 +706,39 @@ pub fn collect(names: &[String], suites: &[String]) -> Result<Vec<Scenario>, Sce
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn oversized_endless_and_duplicate_key_scenarios_are_refused() {
+        let edit = r#"{"step": 1, "joint": "hip_1", "fail": true}"#;
+        let many = format!(
+            r#"{{"name": "many", "fatigue": false, "edits": [{}]}}"#,
+            vec![edit; MAX_SCENARIO_EDITS + 1].join(",")
+        );
+        let err = Scenario::from_json(&many, "many.json")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("10001 edits, more than the 10000"), "{err}");
+        let big = format!(
+            r#"{{"name": "big", "description": "{}"}}"#,
+            "x".repeat(MAX_SCENARIO_BYTES)
+        );
+        let err = Scenario::from_json(&big, "big.json")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("more than the 1048576"), "{err}");
+        let err = Scenario::load("/dev/zero").unwrap_err().to_string();
+        assert!(err.contains("/dev/zero"), "{err}");
+        let dup = r#"{"name": "a", "name": "b", "fatigue": false, "edits": []}"#;
+        let err = Scenario::from_json(dup, "dup.json")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("duplicate key \"name\""), "{err}");
+        let nested = r#"{"name": "n", "fatigue": false, "edits": [{"step": 1, "step": 2, "joint": "hip_1", "fail": true}]}"#;
+        let err = Scenario::from_json(nested, "n.json")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("duplicate key \"step\""), "{err}");
+    }
+
     use super::*;
 
     fn ant() -> JointMap {
