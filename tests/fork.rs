@@ -191,27 +191,8 @@ fn a_policy_from_a_state_matches_the_replay_of_its_actions() {
 /// world, τ = 30, before the lane core).
 #[test]
 fn rollout_runs_a_checkpoint_in_its_own_world() {
-    use gaitscope::policy::checkpoint::TrainingRecord;
-    use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
     let tmp = tempfile::tempdir().unwrap();
-    let mut trained = gaitscope::GaitConfig::default();
-    trained.damage.threshold = 10.0;
-    let net = NetConfig {
-        hidden: vec![16, 16],
-        z_dim: 4,
-        ..NetConfig::ant(EncoderKind::Lstm)
-    };
-    let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
-    let record = TrainingRecord {
-        env: trained,
-        sac: SacConfig::default(),
-        seed: 3,
-        steps_done: 0,
-        episodes_done: 0,
-        wall_time_s: 0.0,
-        imported_from: None,
-    };
-    model.save(tmp.path(), &record).unwrap();
+    common::save_checkpoint_in_world(tmp.path(), 10.0, 16);
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
         .args(["rollout", "--checkpoint", tmp.path().to_str().unwrap()])
         .args([

@@ -7,6 +7,8 @@ use gaitscope::video::{FrameRenderer, FrameSpec};
 use gaitscope::{AntEnv, GaitConfig};
 use std::process::Command;
 
+mod common;
+
 const SPEC: FrameSpec = FrameSpec {
     width: 320,
     height: 240,
@@ -174,32 +176,11 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
 #[test]
 fn compared_lanes_each_run_in_their_own_world() {
     use gaitscope::lane::Actor;
-    use gaitscope::policy::checkpoint::TrainingRecord;
-    use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
     use gaitscope::video::VideoLane;
     let tmp = tempfile::tempdir().unwrap();
     let save = |name: &str, threshold: f64, len: usize| {
-        let mut trained = GaitConfig::default();
-        trained.damage.threshold = threshold;
-        trained.context.len = len;
-        let net = NetConfig {
-            hidden: vec![16, 16],
-            z_dim: 4,
-            context_len: len,
-            ..NetConfig::ant(EncoderKind::Lstm)
-        };
-        let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
-        let record = TrainingRecord {
-            env: trained,
-            sac: SacConfig::default(),
-            seed: 3,
-            steps_done: 0,
-            episodes_done: 0,
-            wall_time_s: 0.0,
-            imported_from: None,
-        };
         let dir = tmp.path().join(name);
-        model.save(&dir, &record).unwrap();
+        common::save_checkpoint_in_world(&dir, threshold, len);
         Actor::load(&dir).unwrap()
     };
     let requested = GaitConfig::default();

@@ -189,16 +189,7 @@ pub struct Lane {
 impl Lane {
     /// A lane for `actor` in its world (see [`Actor::world`]), reset with `seed`.
     pub fn new(actor: &Actor, requested: &GaitConfig, seed: u64) -> Result<Self, LaneError> {
-        let env = AntEnv::new(actor.world(requested), seed)?;
-        let mut lane = Self {
-            obs: env.observation(),
-            env,
-            window: ContextWindow::new(actor.context_len()),
-            rng: policy_rng(seed),
-            last: None,
-            z: None,
-            done: false,
-        };
+        let mut lane = Self::unstarted(actor, requested, seed)?;
         lane.reset(seed);
         Ok(lane)
     }

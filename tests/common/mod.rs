@@ -242,3 +242,30 @@ pub fn blueprint_view_names(msgs: &[rerun::log::LogMsg]) -> Vec<String> {
     }
     names
 }
+
+/// Saves a small untrained LSTM checkpoint into `dir` as if trained in a world whose joints
+/// trigger at fatigue `threshold` and whose window is `context_len` steps.
+pub fn save_checkpoint_in_world(dir: &std::path::Path, threshold: f64, context_len: usize) {
+    use gaitscope::policy::checkpoint::TrainingRecord;
+    use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
+    let mut trained = gaitscope::GaitConfig::default();
+    trained.damage.threshold = threshold;
+    trained.context.len = context_len;
+    let net = NetConfig {
+        hidden: vec![16, 16],
+        z_dim: 4,
+        context_len,
+        ..NetConfig::ant(EncoderKind::Lstm)
+    };
+    let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
+    let record = TrainingRecord {
+        env: trained,
+        sac: SacConfig::default(),
+        seed: 3,
+        steps_done: 0,
+        episodes_done: 0,
+        wall_time_s: 0.0,
+        imported_from: None,
+    };
+    model.save(dir, &record).unwrap();
+}
