@@ -261,7 +261,8 @@ impl GaitConfig {
 mod tests {
     #[test]
     fn numbers_past_their_ranges_are_refused_with_the_range() {
-        let cases: [(&str, fn(&mut super::GaitConfig)); 4] = [
+        type Edit = fn(&mut super::GaitConfig);
+        let cases: [(&str, Edit); 4] = [
             ("env.frame_skip must lie in 1..=1000", |c| {
                 c.env.frame_skip = 100_000_000
             }),

@@ -431,7 +431,8 @@ mod tests {
                     lane.advance(&actor, mode).unwrap();
                 }
                 let at = lane.state();
-                let run = |lane: &mut Lane| -> Vec<(Vec<f64>, [f64; 8], Option<Vec<f32>>)> {
+                type Trace = Vec<(Vec<f64>, [f64; 8], Option<Vec<f32>>)>;
+                let run = |lane: &mut Lane| -> Trace {
                     (0..30)
                         .map_while(|_| {
                             let out = lane.advance(&actor, mode).ok()?.clone();

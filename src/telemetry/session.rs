@@ -263,7 +263,7 @@ impl Session {
             } else {
                 labels[k].clone()
             };
-            let style = several.then(|| super::SeriesStyle { label, family: k });
+            let style = several.then_some(super::SeriesStyle { label, family: k });
             lane.logger.set_series_style(style)?;
         }
         Ok(())
