@@ -68,6 +68,23 @@ struct EnvArgs {
 }
 
 impl EnvArgs {
+    /// A `--config`/`--model` on a checkpoint command: the checkpoint runs in the task it was
+    /// trained in (lane::Actor::world), so say which of the file's sections go unused.
+    fn note_unused(&self, actor: &gaitscope::lane::Actor, requested: &GaitConfig) {
+        if self.config.is_none() && self.model.is_none() {
+            return;
+        }
+        let unused = actor.unused_settings(requested);
+        if !unused.is_empty() {
+            eprintln!(
+                "note: {} runs in the task it was trained in: the {} settings of --config/--model \
+                 are not used (only the condition, scenario and step limit apply)",
+                actor.label(),
+                unused.join(", ")
+            );
+        }
+    }
+
     fn load(&self) -> Result<GaitConfig> {
         let mut config = match &self.config {
             Some(path) => GaitConfig::from_json_file(path)?,
@@ -676,6 +693,7 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
     if let Some(dir) = &args.checkpoint {
         // The checkpoint runs in its own world (lane::Actor::world), with this condition and limit.
         let actor = gaitscope::lane::Actor::load(dir)?;
+        args.env.note_unused(&actor, &config);
         let fork = fork_option(args.fork_at, args.fork.as_deref())?;
         let init = match &args.init_state {
             Some(path) => {
@@ -866,6 +884,9 @@ fn record_command(args: RecordArgs) -> Result<()> {
     }
     if actors.is_empty() {
         actors.push(Actor::Builtin(args.policy));
+    }
+    for actor in &actors {
+        args.env.note_unused(actor, &config);
     }
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
@@ -1161,6 +1182,9 @@ fn video_command(args: VideoArgs) -> Result<()> {
     let fork = fork_option(args.fork_at, args.fork.as_deref())?;
     if let Some(f) = &fork {
         f.validate(&actor.world(&config))?;
+    }
+    for a in std::iter::once(&actor).chain(&compare) {
+        args.env.note_unused(a, &config);
     }
     // Side by side: two lanes, each half the width (kept even for the encoder).
     let two = compare.is_some() || fork.is_some();

@@ -232,3 +232,38 @@ fn rollout_runs_a_checkpoint_in_its_own_world() {
         "triggered at fatigue {fatigue}"
     );
 }
+
+/// A `--config` given to a checkpoint command is not silently half-applied: what the
+/// checkpoint's own task overrides is named.
+#[test]
+fn a_config_on_a_checkpoint_command_says_what_it_does_not_set() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::save_checkpoint_in_world(tmp.path(), 10.0, 16);
+    let config = tmp.path().join("c.json");
+    std::fs::write(&config, r#"{"damage": {"threshold": 50}}"#).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["rollout", "--checkpoint", tmp.path().to_str().unwrap()])
+        .args([
+            "--config",
+            config.to_str().unwrap(),
+            "--episodes",
+            "1",
+            "--max-steps",
+            "5",
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        e.contains("runs in the task it was trained in: the damage settings"),
+        "{e}"
+    );
+    // Without --config nothing is said, whatever the checkpoint's task.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["rollout", "--checkpoint", tmp.path().to_str().unwrap()])
+        .args(["--episodes", "1", "--max-steps", "5"])
+        .output()
+        .unwrap();
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("note:"));
+}

@@ -82,6 +82,24 @@ impl Actor {
         }
     }
 
+    /// The settings of `requested` that [`Self::world`] does not use (a `--config` given to a
+    /// checkpoint command): "env", "damage", "context" where they differ beyond the condition,
+    /// scenario and step limit. Callers print them; nothing is dropped silently.
+    pub fn unused_settings(&self, requested: &GaitConfig) -> Vec<&'static str> {
+        let world = self.world(requested);
+        let mut unused = Vec::new();
+        if world.env != requested.env {
+            unused.push("env");
+        }
+        if world.damage != requested.damage {
+            unused.push("damage");
+        }
+        if world.context != requested.context {
+            unused.push("context");
+        }
+        unused
+    }
+
     /// Steps of (observation, action) the actor reads.
     pub fn context_len(&self) -> usize {
         match self {
@@ -412,6 +430,13 @@ mod tests {
         // A built-in policy takes the requested world as it is.
         let random = Actor::Builtin(BuiltinPolicy::Random);
         assert_eq!(random.world(&severe(7)), severe(7));
+        assert!(random.unused_settings(&severe(7)).is_empty());
+        // What the checkpoint's world does not take from a request is named.
+        assert_eq!(actor.unused_settings(&severe(123)), ["damage", "context"]);
+        let mut asked = actor.world(&severe(123));
+        assert!(actor.unused_settings(&asked).is_empty());
+        asked.env.frame_skip = 2;
+        assert_eq!(actor.unused_settings(&asked), ["env"]);
         // The lane is built in that world.
         let lane = Lane::new(&actor, &severe(123), 1).unwrap();
         assert_eq!(lane.env().config().damage.threshold, 10.0);
