@@ -177,6 +177,12 @@ impl Fork {
 #[derive(Debug, Clone)]
 pub struct LaneState {
     env: EnvSnapshot,
+    run: Run,
+}
+
+/// Everything of a lane besides the physics: the same in the live lane and in its snapshot.
+#[derive(Debug, Clone)]
+struct Run {
     window: ContextWindow,
     obs: Observation,
     rng: ChaCha8Rng,
@@ -196,12 +202,7 @@ impl LaneState {
 /// observation, the actor's RNG, the latest step.
 pub struct Lane {
     env: AntEnv,
-    window: ContextWindow,
-    obs: Observation,
-    rng: ChaCha8Rng,
-    last: Option<StepOutcome>,
-    z: Option<Vec<f32>>,
-    done: bool,
+    run: Run,
 }
 
 impl Lane {
@@ -215,26 +216,26 @@ impl Lane {
     /// A lane in `actor`'s world that has not started an episode: done until [`Self::reset`].
     pub fn unstarted(actor: &Actor, requested: &GaitConfig, seed: u64) -> Result<Self, LaneError> {
         let env = AntEnv::new(actor.world(requested), seed)?;
-        Ok(Self {
-            obs: env.observation(),
-            env,
+        let run = Run {
             window: ContextWindow::new(actor.context_len()),
+            obs: env.observation(),
             rng: policy_rng(seed),
             last: None,
             z: None,
             done: true,
-        })
+        };
+        Ok(Self { env, run })
     }
 
     /// A new episode from `seed` (the actor's RNG re-seeded from it too, so an episode is
     /// reproducible on its own).
     pub fn reset(&mut self, seed: u64) {
-        self.obs = self.env.reset_with_seed(seed);
-        self.window.clear();
-        self.rng = policy_rng(seed);
-        self.last = None;
-        self.z = None;
-        self.done = false;
+        self.run.obs = self.env.reset_with_seed(seed);
+        self.run.window.clear();
+        self.run.rng = policy_rng(seed);
+        self.run.last = None;
+        self.run.z = None;
+        self.run.done = false;
     }
 
     /// A new episode from a given state (`rollout --init-state`).
@@ -244,53 +245,43 @@ impl Lane {
         qvel: &[f64],
         condition: crate::damage::Condition,
     ) -> Result<(), LaneError> {
-        self.obs = self.env.reset_to_state(qpos, qvel, condition)?;
-        self.window.clear();
-        self.last = None;
-        self.z = None;
-        self.done = false;
+        self.run.obs = self.env.reset_to_state(qpos, qvel, condition)?;
+        self.run.window.clear();
+        self.run.last = None;
+        self.run.z = None;
+        self.run.done = false;
         Ok(())
     }
 
     /// One env step: the actor decides, the env steps, the window takes the pair. Returns the
     /// step's outcome (also kept as [`Self::last`]).
     pub fn advance(&mut self, actor: &Actor, mode: ActionMode) -> Result<&StepOutcome, LaneError> {
-        let (action, z) = actor.decide(&self.obs, &self.window, &mut self.rng, mode)?;
+        let (action, z) = actor.decide(&self.run.obs, &self.run.window, &mut self.run.rng, mode)?;
         self.apply(&action, z)
     }
 
     /// The step half of [`Self::advance`], for an action decided elsewhere (a batch).
     fn apply(&mut self, action: &[f64], z: Option<Vec<f32>>) -> Result<&StepOutcome, LaneError> {
         let out = self.env.step(action)?;
-        self.window.push(&self.obs, action);
-        self.obs = out.obs;
-        self.z = z;
-        self.done = out.done();
-        Ok(self.last.insert(out))
+        self.run.window.push(&self.run.obs, action);
+        self.run.obs = out.obs;
+        self.run.z = z;
+        self.run.done = out.done();
+        Ok(self.run.last.insert(out))
     }
 
     /// The lane's state now (a snapshot, a rewind point).
     pub fn state(&self) -> LaneState {
         LaneState {
             env: self.env.snapshot(),
-            window: self.window.clone(),
-            obs: self.obs,
-            rng: self.rng.clone(),
-            last: self.last.clone(),
-            z: self.z.clone(),
-            done: self.done,
+            run: self.run.clone(),
         }
     }
 
     /// Back to a state this lane (or one in the same world) had.
     pub fn restore(&mut self, state: &LaneState) -> Result<(), LaneError> {
         self.env.restore(&state.env)?;
-        self.window = state.window.clone();
-        self.obs = state.obs;
-        self.rng = state.rng.clone();
-        self.last = state.last.clone();
-        self.z = state.z.clone();
-        self.done = state.done;
+        self.run = state.run.clone();
         Ok(())
     }
 
@@ -303,12 +294,7 @@ impl Lane {
         }
         Ok(Lane {
             env,
-            window: self.window.clone(),
-            obs: self.obs,
-            rng: self.rng.clone(),
-            last: self.last.clone(),
-            z: self.z.clone(),
-            done: self.done,
+            run: self.run.clone(),
         })
     }
 
@@ -319,21 +305,21 @@ impl Lane {
         &mut self.env
     }
     pub fn obs(&self) -> &Observation {
-        &self.obs
+        &self.run.obs
     }
     pub fn window(&self) -> &ContextWindow {
-        &self.window
+        &self.run.window
     }
     /// The latest step's outcome (none right after a reset).
     pub fn last(&self) -> Option<&StepOutcome> {
-        self.last.as_ref()
+        self.run.last.as_ref()
     }
     /// The latent the policy produced for the latest step (encoder policies).
     pub fn z(&self) -> Option<&[f32]> {
-        self.z.as_deref()
+        self.run.z.as_deref()
     }
     pub fn is_done(&self) -> bool {
-        self.done
+        self.run.done
     }
     pub fn steps(&self) -> usize {
         self.env.steps()
@@ -348,7 +334,7 @@ pub fn advance_lockstep(
     lanes: &mut [Lane],
     mode: ActionMode,
 ) -> Result<(), LaneError> {
-    let active: Vec<usize> = (0..lanes.len()).filter(|&i| !lanes[i].done).collect();
+    let active: Vec<usize> = (0..lanes.len()).filter(|&i| !lanes[i].run.done).collect();
     if active.is_empty() {
         return Ok(());
     }
@@ -357,9 +343,9 @@ pub fn advance_lockstep(
             let uses_window = policy.net().encoder.uses_window();
             let (mut obs, mut windows) = (Vec::new(), Vec::new());
             for &i in &active {
-                obs.extend(lanes[i].obs.iter().map(|&v| v as f32));
+                obs.extend(lanes[i].run.obs.iter().map(|&v| v as f32));
                 if uses_window {
-                    windows.extend_from_slice(lanes[i].window.as_slice());
+                    windows.extend_from_slice(lanes[i].run.window.as_slice());
                 }
             }
             let decisions =
@@ -517,7 +503,7 @@ mod tests {
         }
         // Lanes that ended are left alone.
         let mut ended = lanes();
-        ended[1].done = true;
+        ended[1].run.done = true;
         let before = ended[1].steps();
         advance_lockstep(&actor, &mut ended, ActionMode::Deterministic).unwrap();
         assert_eq!(ended[1].steps(), before);
