@@ -1083,7 +1083,12 @@ fn live_web(
     let deadline = args
         .exit_after
         .map(|s| std::time::Instant::now() + std::time::Duration::from_secs_f64(s));
-    let stats = server.serve(&sim, deadline);
+    // Ctrl-C / SIGTERM end the session like Quit: the report and the --save file come out.
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
+        .context("installing the Ctrl-C handler")?;
+    let stats = server.serve(&sim, deadline, &stop);
     let finished = sim.shutdown();
     eprintln!(
         "web: {} requests in {:.1} s ({} commands, {} refused)",

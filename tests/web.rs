@@ -695,3 +695,46 @@ fn docs_pictures_and_latency_of_a_running_session() {
         client.close().await.unwrap();
     });
 }
+
+/// SIGINT and SIGTERM end `live --web` as Quit does: exit 0, the session report, and a
+/// `--save` file flushed to the last step.
+#[test]
+fn a_signal_ends_live_web_with_its_report_and_saved_file() {
+    for signal in ["-INT", "-TERM"] {
+        let dir = tempfile::tempdir().unwrap();
+        let save = dir.path().join("session.rrd");
+        let args = [std::ffi::OsStr::new("--save"), save.as_os_str()];
+        let (mut live, _) = live_web(&args, Stdio::piped());
+        // Let it run a few steps at 1×.
+        std::thread::sleep(Duration::from_secs(2));
+        let pid = live.0.id().to_string();
+        assert!(
+            Command::new("kill")
+                .args([signal, &pid])
+                .status()
+                .unwrap()
+                .success()
+        );
+        let deadline = Instant::now() + WAIT;
+        let status = loop {
+            if let Some(status) = live.0.try_wait().unwrap() {
+                break status;
+            }
+            assert!(Instant::now() < deadline, "live --web ignored {signal}");
+            std::thread::sleep(Duration::from_millis(100));
+        };
+        let mut stderr = String::new();
+        std::io::Read::read_to_string(live.0.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+        assert!(status.success(), "{signal}: {stderr}");
+        assert!(
+            stderr.contains("web: ") && stderr.contains("requests"),
+            "{stderr}"
+        );
+        let chunks = read_rrd(&save);
+        let steps = common::joint_series(&chunks, "/ant/joints/fatigue").len();
+        assert!(
+            steps > 0,
+            "{signal}: the saved file has the session's steps"
+        );
+    }
+}

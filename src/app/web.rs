@@ -192,13 +192,23 @@ impl WebServer {
     }
 
     /// Answers requests until the sim stops (the page's Quit) or `deadline` passes.
-    pub fn serve(&self, sim: &SimHandle, deadline: Option<Instant>) -> WebStats {
+    /// Serves until Quit, the deadline, or `stop` (set by the SIGINT/SIGTERM handler): the
+    /// caller then shuts the sim down, which flushes `--save` and yields the session report.
+    pub fn serve(
+        &self,
+        sim: &SimHandle,
+        deadline: Option<Instant>,
+        stop: &std::sync::atomic::AtomicBool,
+    ) -> WebStats {
         let started = Instant::now();
         let mut stats = WebStats::default();
         let clients = Arc::new(AtomicUsize::new(0));
         let mut sent = 0u64;
         loop {
-            if sim.snapshot().stopped || deadline.is_some_and(|d| Instant::now() >= d) {
+            if sim.snapshot().stopped
+                || deadline.is_some_and(|d| Instant::now() >= d)
+                || stop.load(std::sync::atomic::Ordering::Relaxed)
+            {
                 break;
             }
             let request = match self.control.recv_timeout(Duration::from_millis(100)) {
