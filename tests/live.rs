@@ -361,6 +361,31 @@ fn live_legs_show_each_models_damage_and_lines_name_the_model() {
     assert!(red > 0, "60 severe steps trigger a joint");
 }
 
+/// Pause takes effect before steps still queued: a burst of single steps followed by Pause
+/// stops the sim where it is, and it stays there.
+#[test]
+fn pause_drops_the_steps_still_queued() {
+    let (_dir, sim, _storage) = started(LiveCondition::Severe);
+    let before = sim.snapshot().global_step;
+    for _ in 0..50 {
+        assert!(sim.send(Command::StepOnce));
+    }
+    assert!(sim.send(Command::Pause));
+    std::thread::sleep(Duration::from_millis(300));
+    let paused_at = sim.snapshot().global_step;
+    assert!(
+        paused_at < before + 50,
+        "the queued steps were dropped: {before} → {paused_at}"
+    );
+    std::thread::sleep(Duration::from_millis(700));
+    assert_eq!(
+        sim.snapshot().global_step,
+        paused_at,
+        "nothing moves while paused"
+    );
+    sim.shutdown().unwrap();
+}
+
 #[cfg(feature = "live")]
 mod panel {
     use super::*;

@@ -24,6 +24,9 @@ const MAX_LAG: Duration = Duration::from_millis(250);
 const FLUSH_TIMEOUT: Duration = Duration::from_secs(5);
 /// While paused, the thread still wakes this often (to notice a closed panel).
 const IDLE_WAIT: Duration = Duration::from_millis(100);
+/// Single steps queued at most; more are refused with a message (a flood of step requests
+/// must not grow without bound).
+pub const MAX_PENDING_STEPS: usize = 10_000;
 
 /// How a live session starts.
 #[derive(Debug, Clone)]
@@ -582,9 +585,14 @@ impl Sim {
                     Ok(())
                 }
             }
-            Command::Reset => self.new_episode(),
+            // Pause and reset take effect before steps still queued: those are dropped.
+            Command::Reset => {
+                self.steps_pending = 0;
+                self.new_episode()
+            }
             Command::Pause => {
                 self.paused = true;
+                self.steps_pending = 0;
                 Ok(())
             }
             Command::Resume => {
@@ -593,7 +601,13 @@ impl Sim {
                 Ok(())
             }
             Command::StepOnce => {
-                self.steps_pending += 1;
+                if self.steps_pending >= MAX_PENDING_STEPS {
+                    self.message = Some(format!(
+                        "step refused: {MAX_PENDING_STEPS} steps are already queued"
+                    ));
+                } else {
+                    self.steps_pending += 1;
+                }
                 self.break_hit = None;
                 Ok(())
             }
