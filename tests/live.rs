@@ -386,6 +386,29 @@ fn pause_drops_the_steps_still_queued() {
     sim.shutdown().unwrap();
 }
 
+/// A scenario naming a joint the Ant lacks is refused when it is set (as the CLI refuses it),
+/// with a message; the next reset and steps still work.
+#[test]
+fn a_scenario_with_an_unknown_joint_is_refused_and_resets_still_work() {
+    let (_dir, sim, _storage) = started(LiveCondition::Severe);
+    let bad = gaitscope::scenario::Scenario::from_json(
+        r#"{"name": "bad", "fatigue": false, "edits": [{"step": 0, "joint": "knee_9", "scale": 0.1}]}"#,
+        "test",
+    )
+    .unwrap();
+    assert!(sim.send(Command::SetScenario(Some(bad))));
+    let s = sim.wait_for(WAIT, |s| s.message.is_some());
+    let message = s.message.unwrap_or_default();
+    assert!(
+        message.contains("scenario refused") && message.contains("knee_9"),
+        "{message}"
+    );
+    assert!(sim.send(Command::Reset));
+    step_once(&sim);
+    step_once(&sim);
+    sim.shutdown().unwrap();
+}
+
 #[cfg(feature = "live")]
 mod panel {
     use super::*;

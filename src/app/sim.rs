@@ -641,10 +641,24 @@ impl Sim {
             }
             Command::EndFork => self.session.end_fork().map(|_| ()).map_err(LiveError::from),
             Command::SetScenario(scenario) => {
-                let mut config = self.session.config().clone();
-                config.damage.scenario = scenario;
-                self.session.set_config(config);
-                Ok(())
+                // Checked against this model's joints now, as the CLI does: a scenario naming a
+                // joint the Ant lacks is refused, not left to break every later reset.
+                let checked = match (&scenario, self.session.lanes().first()) {
+                    (Some(s), Some(lane)) => s.check(&lane.env().joint_map()),
+                    _ => Ok(()),
+                };
+                match checked {
+                    Ok(()) => {
+                        let mut config = self.session.config().clone();
+                        config.damage.scenario = scenario;
+                        self.session.set_config(config);
+                        Ok(())
+                    }
+                    Err(e) => {
+                        self.message = Some(format!("scenario refused: {e}"));
+                        Ok(())
+                    }
+                }
             }
             Command::SaveScenario(path) => self.save_scenario(&path),
             Command::Quit => Ok(()),
