@@ -253,6 +253,24 @@ async fn send_raw(client: &Client, body: &str) -> Value {
         .unwrap()
 }
 
+/// Waits (up to WAIT) for `live --web` to exit after `what`; its status and stderr.
+fn wait_exit(live: &mut Killed, what: &str) -> (std::process::ExitStatus, String) {
+    let deadline = Instant::now() + WAIT;
+    let status = loop {
+        if let Some(status) = live.0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "live --web did not end after {what}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(live.0.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+    (status, stderr)
+}
+
 fn read_rrd(path: &Path) -> Vec<Chunk> {
     common::recording_chunks(read_msgs(path))
 }
@@ -469,16 +487,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         click(&client, "quit").await;
         client.close().await.unwrap();
     });
-    let deadline = Instant::now() + WAIT;
-    let status = loop {
-        if let Some(status) = live.0.try_wait().unwrap() {
-            break status;
-        }
-        assert!(Instant::now() < deadline, "live --web did not quit");
-        std::thread::sleep(Duration::from_millis(100));
-    };
-    let mut stderr = String::new();
-    std::io::Read::read_to_string(live.0.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+    let (status, stderr) = wait_exit(&mut live, "Quit");
     assert!(status.success(), "{stderr}");
     assert!(stderr.contains("control page:"), "{stderr}");
     let chunks = read_rrd(&save);
@@ -715,16 +724,7 @@ fn a_signal_ends_live_web_with_its_report_and_saved_file() {
                 .unwrap()
                 .success()
         );
-        let deadline = Instant::now() + WAIT;
-        let status = loop {
-            if let Some(status) = live.0.try_wait().unwrap() {
-                break status;
-            }
-            assert!(Instant::now() < deadline, "live --web ignored {signal}");
-            std::thread::sleep(Duration::from_millis(100));
-        };
-        let mut stderr = String::new();
-        std::io::Read::read_to_string(live.0.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+        let (status, stderr) = wait_exit(&mut live, signal);
         assert!(status.success(), "{signal}: {stderr}");
         assert!(
             stderr.contains("web: ") && stderr.contains("requests"),
