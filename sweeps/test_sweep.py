@@ -110,7 +110,7 @@ class Sweeps(unittest.TestCase):
             '[search]\n"damage.threshold" = {loguniform = [0.0, 50.0]}\n': "loguniform needs [low, high] with low < high and low > 0",
             '[search]\n"damage.threshold" = {normal = [30.0, 5.0]}\n': "needs one of choice, loguniform, randint, uniform",
             '[search]\n"context.len" = {randint = [8, 8]}\n': "randint needs [low, high]",
-            '[search]\n"context.len" = {randint = [0, 8]}\n': "context.len must be at least 1",
+            '[search]\n"context.len" = {randint = [0, 8]}\n': "context.len must lie in 1..=1024",
             'search_alg = "optuna"\n[grid]\nseed = [0]\n': "move the [grid] keys there as choice",
             'metric = "reward"\n[grid]\nseed = [0]\n': "metric 'reward' is not reported",
             '[grid]\nz_dim = [0]\n': "z size",
