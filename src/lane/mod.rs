@@ -1,4 +1,4 @@
-//! The one stepping core (`../shared/DESIGN.md`): who acts ([`Actor`], which owns the one rule
+//! The one stepping core (docs/layout.md): who acts ([`Actor`], which owns the one rule
 //! for the world a model runs in), a lane's whole state ([`Lane`]; its [`LaneState`] is the
 //! snapshot, the rewind point and the fork) and [`Lane::advance`]: decide → step → window push.
 //! Front-ends and sinks call `advance` and read what it left; none steps the sim its own way.
