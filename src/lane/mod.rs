@@ -160,13 +160,13 @@ impl Fork {
     /// Checked once, before any step, for every front-end: every edit names a joint of this
     /// world's model, and step `at` lies inside its step limit.
     pub fn validate(&self, world: &GaitConfig) -> Result<(), LaneError> {
-        let limit = world.env.max_episode_steps;
-        if self.at >= limit {
-            return Err(LaneError::ForkBeyondLimit { at: self.at, limit });
-        }
         let env = AntEnv::new(world.clone(), 0)?;
         for edit in &self.edits {
             env.damage().resolve(&edit.target).map_err(EnvError::from)?;
+        }
+        let limit = world.env.max_episode_steps;
+        if self.at >= limit {
+            return Err(LaneError::ForkBeyondLimit { at: self.at, limit });
         }
         Ok(())
     }

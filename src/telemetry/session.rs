@@ -687,8 +687,7 @@ pub enum RecordError {
     Probe(#[from] crate::probe::ProbeError),
     #[error("policy inference failed: {0}")]
     Policy(#[from] candle_core::Error),
-    #[error("--fork-at {at} is beyond the episodes' step limit ({limit})")]
-    ForkBeyondLimit { at: usize, limit: usize },
+
     #[error("--fork-at {at} is beyond episode {episode}, which ended after {steps} steps")]
     ForkBeyondEpisode {
         at: usize,
@@ -721,21 +720,8 @@ pub fn record(
     stop: &std::sync::atomic::AtomicBool,
 ) -> Result<RecordSummary, RecordError> {
     if let (Some(fork), Some(actor)) = (&opts.fork, opts.actors.first()) {
-        // Every edit names a joint this model has, and K is inside the step limit: checked
-        // before the file is created.
-        let config = actor.world(&opts.config);
-        let env = AntEnv::new(config.clone(), opts.seed)?;
-        for edit in &fork.edits {
-            env.damage()
-                .resolve(&edit.target)
-                .map_err(crate::env::EnvError::from)?;
-        }
-        if fork.at >= config.env.max_episode_steps {
-            return Err(RecordError::ForkBeyondLimit {
-                at: fork.at,
-                limit: config.env.max_episode_steps,
-            });
-        }
+        // Checked before the file is created, as every front-end checks a fork.
+        fork.validate(&actor.world(&opts.config))?;
     }
     let roots = model_roots(&opts.actors);
     let recording_id = format!(
