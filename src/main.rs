@@ -678,8 +678,7 @@ fn rollout_command(args: RolloutArgs) -> Result<()> {
         };
         let init = rollout::read_init_state(init_path)?;
         let actions = rollout::read_actions(actions_path)?;
-        let mut env = AntEnv::new(config, 0)?;
-        rollout::replay(&mut env, &init, condition, &actions, |record| {
+        rollout::replay(&config, &init, condition, &actions, |record| {
             serde_json::to_writer(&mut out, record)?;
             writeln!(out)
         })?;
@@ -876,11 +875,7 @@ fn record_command(args: RecordArgs) -> Result<()> {
     }
     let mut actors = Vec::new();
     for dir in args.checkpoint.iter().chain(&args.compare) {
-        let policy = gaitscope::policy::Policy::load(dir, None)?;
-        actors.push(Actor::Checkpoint {
-            dir: dir.clone(),
-            policy: Box::new(policy),
-        });
+        actors.push(Actor::load(dir)?);
     }
     if actors.is_empty() {
         actors.push(Actor::Builtin(args.policy));
@@ -959,6 +954,11 @@ fn live_command(args: LiveArgs) -> Result<()> {
     };
     // Check what can be checked before any window opens: the input first, then the display.
     setup.validate()?;
+    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
+        let requested = app::episode_config(&setup.config, setup.condition, setup.step_limit);
+        args.env
+            .note_unused(&gaitscope::lane::Actor::load(dir)?, &requested);
+    }
     let mut checkpoints = app::discover_checkpoints(std::path::Path::new("checkpoints"));
     for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
         if !checkpoints.contains(dir) {
@@ -1378,21 +1378,15 @@ fn probe_command(args: ProbeArgs) -> Result<()> {
         if !policy.net().encoder.uses_window() {
             return Err(probe::ProbeError::NoLatent(dir.clone()).into());
         }
-        let actor = gaitscope::lane::Actor::Checkpoint {
-            dir: dir.clone(),
-            policy: Box::new(policy.clone()),
-        };
+        let actor = gaitscope::lane::Actor::from_policy(dir, policy.clone());
         policies.push((actor, policy));
     }
     let baseline = match &args.baseline {
         Some(dir) => {
-            let base = gaitscope::lane::Actor::Checkpoint {
-                dir: dir.clone(),
-                policy: Box::new(gaitscope::policy::Policy::load(
-                    dir,
-                    Some(EncoderKind::None),
-                )?),
-            };
+            let base = gaitscope::lane::Actor::from_policy(
+                dir,
+                gaitscope::policy::Policy::load(dir, Some(EncoderKind::None))?,
+            );
             Some(probe::collect(
                 &base,
                 args.episodes,

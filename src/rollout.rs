@@ -4,7 +4,7 @@
 //! Ant-v4), so its file formats are fixed:
 //! - init state: `{"qpos": [15 numbers], "qvel": [14 numbers]}`
 //! - actions: `[[8 numbers], ...]`
-//! - output: one [`StepRecord`] JSON object per line, the state after step `t`.
+//! - output: one [`StepLine`] JSON object per line, the state after step `t`.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -86,20 +86,12 @@ pub fn run_builtin_episode_with(
     let mut lane = crate::lane::Lane::new(&actor, env.config(), seed)?;
     let mut episode_return = 0.0;
     while !lane.is_done() {
-        lane.advance(&actor, crate::policy::ActionMode::Deterministic)?;
-        let out = lane.last().expect("advance keeps the step's outcome");
-        episode_return += out.reward.total;
-        sink(&LaneRecord {
-            episode,
-            seed,
-            lane: "main",
-            record: StepRecord::capture(lane.env(), out),
-            action: out.commanded_action,
-        })
-        .map_err(ReplayError::Write)?;
+        let record = lane.advance(&actor, crate::policy::ActionMode::Deterministic)?;
+        episode_return += record.outcome.reward.total;
+        sink(&LaneRecord::new(episode, seed, "main", record)).map_err(ReplayError::Write)?;
     }
     let last = lane
-        .last()
+        .outcome()
         .cloned()
         .ok_or_else(|| ReplayError::Env(EnvError::BadState("the episode took no step".into())))?;
     let summary = summarize(lane.env(), episode, seed, &last, episode_return);
@@ -168,9 +160,9 @@ impl std::fmt::Display for EpisodeSummary {
     }
 }
 
-/// The state after one replayed step; the JSONL line format of `rollout --jsonl`.
+/// The state after one step; the JSONL line format of `rollout --jsonl` and of a replay.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StepRecord {
+pub struct StepLine {
     pub step: usize,
     pub obs: Vec<f64>,
     pub reward: f64,
@@ -187,21 +179,22 @@ pub struct StepRecord {
     pub contacts: [bool; crate::env::N_LEGS],
 }
 
-impl StepRecord {
-    pub fn capture(env: &AntEnv, out: &StepOutcome) -> Self {
+impl From<&crate::lane::StepRecord> for StepLine {
+    fn from(r: &crate::lane::StepRecord) -> Self {
+        let out = &r.outcome;
         Self {
             step: out.step,
             obs: out.obs.to_vec(),
             reward: out.reward.total,
             terminated: out.terminated,
             truncated: out.truncated,
-            fatigue: *env.damage().fatigue(),
-            triggered: *env.damage().triggered(),
+            fatigue: r.fatigue,
+            triggered: r.triggered,
             applied_action: out.applied_action,
-            torso_xy: env.torso_xy(),
-            contacts: env.foot_contacts(),
-            qpos: env.qpos().to_vec(),
-            qvel: env.qvel().to_vec(),
+            torso_xy: r.torso_xy,
+            contacts: r.contacts,
+            qpos: r.qpos.clone(),
+            qvel: r.qvel.clone(),
         }
     }
 }
@@ -312,26 +305,24 @@ pub fn read_actions(path: &Path) -> Result<Vec<Action>, ReplayError> {
         .collect()
 }
 
-/// Replays `actions` from `init` under `condition`, handing each step's record to `sink`.
-/// Stops at the end of the actions or when the episode ends; returns the steps replayed.
+/// Replays `actions` from `init` under `condition` in the world `config` (a lane with a
+/// scripted actor), handing each step's line to `sink`. Stops at the end of the actions or when
+/// the episode ends; returns the steps replayed.
 pub fn replay(
-    env: &mut AntEnv,
+    config: &crate::config::GaitConfig,
     init: &InitState,
     condition: Condition,
     actions: &[Action],
-    mut sink: impl FnMut(&StepRecord) -> std::io::Result<()>,
+    mut sink: impl FnMut(&StepLine) -> std::io::Result<()>,
 ) -> Result<usize, ReplayError> {
-    env.reset_to_state(&init.qpos, &init.qvel, condition)?;
-    let mut steps = 0;
-    for action in actions {
-        let out = env.step(action)?;
-        sink(&StepRecord::capture(env, &out)).map_err(ReplayError::Write)?;
-        steps += 1;
-        if out.done() {
-            break;
-        }
+    let actor = crate::lane::Actor::Scripted(actions.into());
+    let mut lane = crate::lane::Lane::unstarted(&actor, config, 0)?;
+    lane.reset_to_state(&init.qpos, &init.qvel, condition)?;
+    while !lane.is_done() && lane.steps() < actions.len() {
+        let record = lane.advance(&actor, crate::policy::ActionMode::Deterministic)?;
+        sink(&StepLine::from(record)).map_err(ReplayError::Write)?;
     }
-    Ok(steps)
+    Ok(lane.steps())
 }
 
 /// One line of a policy rollout: the replay record, the lane it belongs to (`main`, or `fork`
@@ -343,8 +334,20 @@ pub struct LaneRecord {
     pub seed: u64,
     pub lane: &'static str,
     #[serde(flatten)]
-    pub record: StepRecord,
+    pub record: StepLine,
     pub action: Action,
+}
+
+impl LaneRecord {
+    fn new(episode: usize, seed: u64, lane: &'static str, r: &crate::lane::StepRecord) -> Self {
+        Self {
+            episode,
+            seed,
+            lane,
+            record: StepLine::from(r),
+            action: r.outcome.commanded_action,
+        }
+    }
 }
 
 /// A counterfactual lane (`--fork-at K --fork EDITS`); see [`crate::lane::Fork`].
@@ -388,17 +391,9 @@ pub fn run_policy_episode(
         |lane: &mut Lane, name: &'static str, stop_at: Option<usize>| -> Result<f64, ReplayError> {
             let mut episode_return = 0.0;
             while !lane.is_done() && stop_at.is_none_or(|k| lane.steps() < k) {
-                lane.advance(actor, mode)?;
-                let out = lane.last().expect("advance keeps the step's outcome");
-                episode_return += out.reward.total;
-                let record = LaneRecord {
-                    episode,
-                    seed,
-                    lane: name,
-                    record: StepRecord::capture(lane.env(), out),
-                    action: out.commanded_action,
-                };
-                sink(&record).map_err(ReplayError::Write)?;
+                let record = lane.advance(actor, mode)?;
+                episode_return += record.outcome.reward.total;
+                sink(&LaneRecord::new(episode, seed, name, record)).map_err(ReplayError::Write)?;
             }
             Ok(episode_return)
         };
@@ -409,7 +404,7 @@ pub fn run_policy_episode(
         .transpose()?;
     let after = run(&mut lane, "main", None)?;
     let last = lane
-        .last()
+        .outcome()
         .cloned()
         .ok_or_else(|| ReplayError::Env(EnvError::BadState("the episode took no step".into())))?;
     let summary = summarize(lane.env(), episode, seed, &last, before + after);
@@ -424,7 +419,7 @@ pub fn run_policy_episode(
     };
     let fork_return = run(&mut fork_lane, "fork", None)?;
     let fork_last = fork_lane
-        .last()
+        .outcome()
         .cloned()
         .ok_or_else(|| ReplayError::Env(EnvError::BadState("the fork took no step".into())))?;
     let mut fork_summary = summarize(

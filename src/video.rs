@@ -431,22 +431,23 @@ impl VideoLane {
         self.lane.env().config()
     }
 
-    /// One env step (deterministic policy, or the built-in one) and its frame.
-    fn step(&mut self) -> Result<(), VideoError> {
+    /// One env step (deterministic policy, or the built-in one) and its frame; the step's
+    /// record (none once the lane's episode has ended: it holds its last frame).
+    pub fn step(&mut self) -> Result<Option<&crate::lane::StepRecord>, VideoError> {
         if self.lane.is_done() {
-            return Ok(());
+            return Ok(None);
         }
-        let out = self
+        let record = self
             .lane
             .advance(&self.actor, crate::policy::ActionMode::Deterministic)
             .map_err(|e| VideoError::Render(e.to_string()))?;
         // The lane's last frame says how its episode ended; it stays up while others go on.
-        let label = match out.ending() {
+        let label = match record.outcome.ending() {
             Some(ending) => format!("{}  ·  ENDED: {}", self.label, ending.to_uppercase()),
             None => self.label.clone(),
         };
         self.frame = self.renderer.frame_with(self.lane.env(), &label)?;
-        Ok(())
+        Ok(self.lane.last())
     }
 }
 

@@ -4,7 +4,8 @@
 use gaitscope::config::GaitConfig;
 use gaitscope::damage::{DamageEventKind, JointState, N_ACTUATORS};
 use gaitscope::env::{ACT_DIM, AntEnv, EnvError, NQ, NV, OBS_DIM};
-use gaitscope::rollout::{self, BuiltinPolicy, StepRecord};
+use gaitscope::lane::{Actor, Lane, StepRecord};
+use gaitscope::rollout::{self, BuiltinPolicy};
 use gaitscope::window::{ContextWindow, ENTRY_DIM};
 use gaitscope::{Condition, ConditionChoice, JointOverride};
 
@@ -263,19 +264,22 @@ fn context_window_follows_the_episode() {
     assert!(window.as_slice().iter().all(|&v| v == 0.0));
 }
 
+/// A severe episode of a fixed action list, through the stepping core (a scripted actor).
 fn trajectory(seed: u64) -> Vec<StepRecord> {
-    let mut env = env_with(Condition::Severe, |_| {});
-    env.reset_with_seed(seed);
-    let mut rng_actions =
-        (0..300).map(|t| [((t * 7 + seed as usize) % 13) as f64 / 6.5 - 1.0; ACT_DIM]);
+    let env = env_with(Condition::Severe, |_| {});
+    let actions: Vec<[f64; ACT_DIM]> = (0..300)
+        .map(|t| [((t * 7 + seed as usize) % 13) as f64 / 6.5 - 1.0; ACT_DIM])
+        .collect();
+    let actor = Actor::Scripted(actions.into());
+    let mut lane = Lane::new(&actor, env.config(), seed).unwrap();
     let mut records = Vec::new();
-    loop {
-        let out = env.step(&rng_actions.next().unwrap()).unwrap();
-        records.push(StepRecord::capture(&env, &out));
-        if out.done() || records.len() == 300 {
-            return records;
-        }
+    while !lane.is_done() && records.len() < 300 {
+        let record = lane
+            .advance(&actor, gaitscope::policy::ActionMode::Deterministic)
+            .unwrap();
+        records.push(record.clone());
     }
+    records
 }
 
 #[test]

@@ -234,36 +234,115 @@ fn rollout_runs_a_checkpoint_in_its_own_world() {
 }
 
 /// A `--config` given to a checkpoint command is not silently half-applied: what the
-/// checkpoint's own task overrides is named.
+/// checkpoint's own task overrides is named, by every command that runs a checkpoint.
 #[test]
 fn a_config_on_a_checkpoint_command_says_what_it_does_not_set() {
     let tmp = tempfile::tempdir().unwrap();
     common::save_checkpoint_in_world(tmp.path(), 10.0, 16);
     let config = tmp.path().join("c.json");
     std::fs::write(&config, r#"{"damage": {"threshold": 50}}"#).unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args(["rollout", "--checkpoint", tmp.path().to_str().unwrap()])
-        .args([
-            "--config",
-            config.to_str().unwrap(),
-            "--episodes",
-            "1",
-            "--max-steps",
-            "5",
-        ])
-        .output()
+    let out_dir = tempfile::tempdir().unwrap();
+    let run = |command: &str, with_config: bool| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"));
+        cmd.args([command, "--checkpoint", tmp.path().to_str().unwrap()])
+            .args(["--max-steps", "3"])
+            // live stops at "no display" right after its checks: the note comes before.
+            .env_remove("DISPLAY")
+            .env_remove("WAYLAND_DISPLAY");
+        if with_config {
+            cmd.arg("--config").arg(&config);
+        }
+        match command {
+            "rollout" => {
+                cmd.args(["--episodes", "1"]);
+            }
+            "record" => {
+                cmd.args(["--episodes", "1", "--out"])
+                    .arg(out_dir.path().join("r.rrd"));
+            }
+            "video" => {
+                cmd.args(["--width", "64", "--height", "48", "--out"])
+                    .arg(out_dir.path().join("v.mp4"));
+            }
+            _ => {}
+        }
+        String::from_utf8_lossy(&cmd.output().unwrap().stderr).into_owned()
+    };
+    for command in ["rollout", "record", "live", "video"] {
+        let e = run(command, true);
+        assert!(
+            e.contains("runs in the task it was trained in: the damage settings"),
+            "{command}: {e}"
+        );
+        // Without --config nothing is said, whatever the checkpoint's task.
+        assert!(!run(command, false).contains("note:"), "{command}");
+    }
+}
+
+/// Every front-end that takes `--fork-at K --fork EDITS` checks it once, the same way, before
+/// any step: a joint the model does not have, or K at or past the step limit, is an error and
+/// nothing is written.
+#[test]
+fn every_front_end_refuses_a_bad_fork_before_any_step() {
+    use gaitscope::app::{LiveCondition, LiveSetup, SimHandle};
+    let tmp = tempfile::tempdir().unwrap();
+    let cases = [
+        ("5", "fail:knee_9", "unknown joint 'knee_9'"),
+        ("60", "heal:all", "beyond the episodes' step limit (60)"),
+    ];
+    for (at, edits, message) in cases {
+        let fork = ["--fork-at", at, "--fork", edits, "--max-steps", "60"];
+        for (command, out) in [
+            ("rollout", None),
+            ("record", Some("r.rrd")),
+            ("video", Some("v.mp4")),
+        ] {
+            let mut cmd = Command::new(env!("CARGO_BIN_EXE_gaitscope"));
+            cmd.args([command, "--checkpoint", CHECKPOINTS[0]])
+                .args(["--condition", "severe"])
+                .args(fork);
+            if command == "rollout" {
+                cmd.arg("--jsonl");
+            }
+            if let Some(name) = out {
+                cmd.arg("--out").arg(tmp.path().join(name));
+            }
+            let result = cmd.output().unwrap();
+            let err = String::from_utf8_lossy(&result.stderr);
+            assert!(!result.status.success(), "{command} {fork:?}");
+            assert!(err.contains(message), "{command} {fork:?}: {err}");
+            assert!(result.stdout.is_empty(), "{command}: no step printed");
+            let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().collect();
+            assert!(left.is_empty(), "{command} wrote {left:?}");
+        }
+        // live: the simulation thread refuses to start (and the pre-window check says so).
+        let setup = LiveSetup {
+            checkpoint: CHECKPOINTS[0].into(),
+            compare: None,
+            condition: LiveCondition::Severe,
+            seed: 0,
+            speed: 1.0,
+            step_limit: 60,
+            mode: gaitscope::policy::ActionMode::Deterministic,
+            paused: true,
+            breakpoints: Vec::new(),
+            fork: Some(gaitscope::rollout::Fork {
+                at: at.parse().unwrap(),
+                edits: gaitscope::damage::DamageEdit::parse_list(edits).unwrap(),
+            }),
+            config: gaitscope::GaitConfig::default(),
+        };
+        let err = setup.validate().unwrap_err().to_string();
+        assert!(err.contains(message), "live: {err}");
+        let (rec, _storage) = gaitscope::telemetry::open(
+            &gaitscope::telemetry::Sink::Memory,
+            "bad-fork",
+            &["ant".to_string()],
+        )
         .unwrap();
-    assert!(out.status.success());
-    let e = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        e.contains("runs in the task it was trained in: the damage settings"),
-        "{e}"
-    );
-    // Without --config nothing is said, whatever the checkpoint's task.
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args(["rollout", "--checkpoint", tmp.path().to_str().unwrap()])
-        .args(["--episodes", "1", "--max-steps", "5"])
-        .output()
-        .unwrap();
-    assert!(!String::from_utf8_lossy(&out.stderr).contains("note:"));
+        let Err(err) = SimHandle::spawn(rec, setup) else {
+            panic!("live started with a bad fork");
+        };
+        assert!(err.to_string().contains(message), "live: {err}");
+    }
 }

@@ -172,10 +172,12 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
 }
 
 /// `--compare` runs each model in its own world (the lane core's one rule): a second model
-/// trained with τ = 10 and a window of 8 gets those, not the first model's.
+/// trained with τ = 10 and a window of 8 gets those, not the first model's, and both lanes step
+/// exactly the episodes `rollout` gives each checkpoint alone.
 #[test]
 fn compared_lanes_each_run_in_their_own_world() {
     use gaitscope::lane::Actor;
+    use gaitscope::rollout::{Start, run_policy_episode};
     use gaitscope::video::VideoLane;
     let tmp = tempfile::tempdir().unwrap();
     let save = |name: &str, threshold: f64, len: usize| {
@@ -183,12 +185,43 @@ fn compared_lanes_each_run_in_their_own_world() {
         common::save_checkpoint_in_world(&dir, threshold, len);
         Actor::load(&dir).unwrap()
     };
-    let requested = GaitConfig::default();
-    let a = VideoLane::new("a".into(), save("a", 30.0, 16), &requested, 0, SPEC).unwrap();
-    let b = VideoLane::new("b".into(), save("b", 10.0, 8), &requested, 0, SPEC).unwrap();
-    assert_eq!(a.world().damage.threshold, 30.0);
+    let mut requested = GaitConfig::default();
+    requested.damage.condition =
+        gaitscope::damage::ConditionChoice::Fixed(gaitscope::damage::Condition::Severe);
+    requested.env.max_episode_steps = 200;
+    let actors = [save("a", 30.0, 16), save("b", 10.0, 8)];
+    let mut lanes: Vec<VideoLane> = actors
+        .iter()
+        .zip(["a", "b"])
+        .map(|(actor, name)| VideoLane::new(name.into(), actor.clone(), &requested, 4, SPEC))
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(lanes[0].world().damage.threshold, 30.0);
     assert_eq!(
-        (b.world().damage.threshold, b.world().context.len),
+        (
+            lanes[1].world().damage.threshold,
+            lanes[1].world().context.len
+        ),
         (10.0, 8)
     );
+    // Lockstep, as render_episode steps them; each lane's fatigue and applied actions.
+    let mut seen = [Vec::new(), Vec::new()];
+    while lanes.iter().any(|l| !l.is_done()) {
+        for (k, lane) in lanes.iter_mut().enumerate() {
+            if let Some(r) = lane.step().unwrap() {
+                seen[k].push((r.fatigue, r.outcome.applied_action));
+            }
+        }
+    }
+    for (k, actor) in actors.iter().enumerate() {
+        let mut alone = Vec::new();
+        run_policy_episode(actor, &requested, 0, 4, Start::Reset, None, |line| {
+            alone.push((line.record.fatigue, line.record.applied_action));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(seen[k], alone, "lane {k}");
+    }
+    // Two worlds, two different episodes (the same seed).
+    assert_ne!(seen[0], seen[1]);
 }

@@ -20,7 +20,7 @@ pub mod panel;
 pub mod web;
 
 pub use breakpoint::{BreakHit, Breakpoint, BreakpointError};
-pub use sim::{LaneView, LiveSetup, SimHandle, SimReport, Snapshot, SpeedReport};
+pub use sim::{LaneView, LiveSetup, SimHandle, SimReport, Snapshot, SpeedReport, episode_config};
 
 use std::fmt;
 use std::path::PathBuf;

@@ -64,28 +64,45 @@ impl LiveSetup {
     /// Checks the settings and that the checkpoints load, before any window or viewer opens.
     pub fn validate(&self) -> Result<(), LiveError> {
         self.check_settings()?;
-        for dir in std::iter::once(&self.checkpoint).chain(&self.compare) {
+        let main = Actor::load(&self.checkpoint)?;
+        if let Some(dir) = &self.compare {
             crate::policy::Policy::load(dir, None)?;
         }
-        let env = crate::env::AntEnv::new(self.config.clone(), 0)
+        let env = crate::env::AntEnv::new(self.world(&main), 0)
             .map_err(|e| LiveError::Record(crate::telemetry::RecordError::Env(e)))?;
         let has_probe = self.checkpoint.join(crate::probe::PROBE_FILE).exists();
         for b in &self.breakpoints {
             b.validate(env.damage().joint_names(), has_probe)?;
         }
-        if let Some(fork) = &self.fork {
-            for edit in &fork.edits {
-                env.damage()
-                    .resolve(&edit.target)
-                    .map_err(|e| LiveError::Record(crate::telemetry::RecordError::Env(e.into())))?;
-            }
+        self.check_fork(&main)
+    }
+
+    /// The main model's world for the first episode (see [`Actor::world`]).
+    fn world(&self, main: &Actor) -> GaitConfig {
+        main.world(&episode_config(
+            &self.config,
+            self.condition,
+            self.step_limit,
+        ))
+    }
+
+    /// `--fork-at K --fork EDITS`, checked once, before any step (lane::Fork::validate).
+    fn check_fork(&self, main: &Actor) -> Result<(), LiveError> {
+        match &self.fork {
+            Some(fork) => fork
+                .validate(&self.world(main))
+                .map_err(|e| LiveError::Record(e.into())),
+            None => Ok(()),
         }
-        Ok(())
     }
 }
 
 /// `base` with the panel's condition and step limit.
-fn episode_config(base: &GaitConfig, condition: LiveCondition, step_limit: usize) -> GaitConfig {
+pub fn episode_config(
+    base: &GaitConfig,
+    condition: LiveCondition,
+    step_limit: usize,
+) -> GaitConfig {
     let mut config = base.clone();
     config.env.max_episode_steps = step_limit;
     config.damage.condition = ConditionChoice::Fixed(condition.env_condition());
@@ -134,7 +151,7 @@ impl LaneView {
         let damaged = std::array::from_fn(|i| damage.triggered()[i] && damage.scale()[i] < 1.0);
         // The readout the session computed once for this step (and logged).
         let probe = lane.probe_now().copied();
-        let last = lane.last();
+        let last = lane.last().map(|r| &r.outcome);
         Self {
             label: lane.actor().label(),
             root: lane.root().to_string(),
@@ -250,6 +267,7 @@ impl SimHandle {
     pub fn spawn(rec: RecordingStream, setup: LiveSetup) -> Result<Self, LiveError> {
         setup.check_settings()?;
         let main = Actor::load(&setup.checkpoint)?;
+        setup.check_fork(&main)?;
         let compare = setup.compare.as_deref().map(Actor::load).transpose()?;
         let compare_on = compare.is_some();
         let config = episode_config(&setup.config, setup.condition, setup.step_limit);
@@ -523,18 +541,19 @@ impl Sim {
     /// The first breakpoint that holds for the step just taken, lane by lane (main first).
     fn check_breakpoints(&self) -> Option<BreakHit> {
         for lane in self.session.lanes() {
-            let Some(outcome) = lane.last() else {
+            let Some(record) = lane.last() else {
                 continue;
             };
+            let outcome = &record.outcome;
             // A lane that ended earlier did not step now.
             if lane.stepped_at() != self.session.global_step() {
                 continue;
             }
             let step = LaneStep {
                 outcome,
-                events: lane.step_events(),
+                events: &record.events,
                 probe_before: lane.probe_before(),
-                probe_after: lane.probe_now(),
+                probe_after: record.probe.as_ref(),
                 joint_names: lane.env().damage().joint_names(),
             };
             for b in &self.breakpoints {

@@ -230,10 +230,7 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
     );
     for dir in &opts.checkpoints {
         let policy = Policy::load(dir, None)?;
-        let actor = crate::lane::Actor::Checkpoint {
-            dir: dir.clone(),
-            policy: Box::new(policy.clone()),
-        };
+        let actor = crate::lane::Actor::from_policy(dir, policy.clone());
         let mut label = model_label(dir);
         while labels.contains(&label) {
             label.push('\'');
@@ -337,7 +334,7 @@ pub fn run_lockstep(
         advance_lockstep(actor, &mut lanes, ActionMode::Deterministic)
             .map_err(|e| lane_error(label, e))?;
         for (i, lane) in lanes.iter().enumerate() {
-            let (Some(out), None) = (lane.last(), &records[i]) else {
+            let (Some(out), None) = (lane.outcome(), &records[i]) else {
                 continue;
             };
             returns[i] += out.reward.total;

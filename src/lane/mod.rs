@@ -10,10 +10,13 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use std::path::{Path, PathBuf};
 
+use std::sync::Arc;
+
 use crate::config::{DamageConfig, EnvConfig, GaitConfig};
-use crate::damage::DamageEdit;
-use crate::env::{AntEnv, EnvError, EnvSnapshot, Observation, StepOutcome};
+use crate::damage::{DamageEdit, DamageEvent, JointState, N_ACTUATORS};
+use crate::env::{Action, AntEnv, EnvError, EnvSnapshot, N_LEGS, Observation, StepOutcome};
 use crate::policy::{ActionMode, Policy};
+use crate::probe::ProbeFile;
 use crate::rollout::{BuiltinPolicy, policy_rng};
 use crate::window::ContextWindow;
 
@@ -25,22 +28,67 @@ pub enum LaneError {
     Policy(#[from] candle_core::Error),
     #[error("--fork-at {at} is beyond the episodes' step limit ({limit})")]
     ForkBeyondLimit { at: usize, limit: usize },
+    #[error("the scripted actions end after {len} steps; step {step} has none")]
+    ScriptEnded { step: usize, len: usize },
 }
 
 /// Who acts in a lane.
 #[derive(Clone)]
 pub enum Actor {
-    Checkpoint { dir: PathBuf, policy: Box<Policy> },
+    /// A checkpoint's policy, and its probe (probe.json) when a viewer reads P(damaged).
+    Checkpoint {
+        dir: PathBuf,
+        policy: Box<Policy>,
+        probe: Option<Arc<ProbeFile>>,
+    },
     Builtin(BuiltinPolicy),
+    /// A fixed action list, step k taking action k (a replay).
+    Scripted(Arc<[Action]>),
 }
 
 impl Actor {
-    /// Loads a checkpoint folder.
+    /// Loads a checkpoint folder (its policy; see [`Self::with_probe`] for its probe).
     pub fn load(dir: &Path) -> Result<Self, crate::policy::checkpoint::CheckpointError> {
-        Ok(Actor::Checkpoint {
+        Ok(Self::from_policy(dir, Policy::load(dir, None)?))
+    }
+
+    /// A checkpoint's policy, loaded by the caller.
+    pub fn from_policy(dir: &Path, policy: Policy) -> Self {
+        Actor::Checkpoint {
             dir: dir.to_path_buf(),
-            policy: Box::new(Policy::load(dir, None)?),
-        })
+            policy: Box::new(policy),
+            probe: None,
+        }
+    }
+
+    /// The checkpoint's probe (probe.json) too, if it has one: every step's record then
+    /// carries the probe's P(damaged) per joint, computed once.
+    pub fn with_probe(self) -> Result<Self, crate::probe::ProbeError> {
+        match self {
+            Actor::Checkpoint { dir, policy, .. } => {
+                let probe = if dir.join(crate::probe::PROBE_FILE).exists() {
+                    Some(Arc::new(ProbeFile::load(&dir)?))
+                } else {
+                    None
+                };
+                Ok(Actor::Checkpoint { dir, policy, probe })
+            }
+            other => Ok(other),
+        }
+    }
+
+    /// The probe this actor's records are read with, if any.
+    pub fn probe(&self) -> Option<&ProbeFile> {
+        match self {
+            Actor::Checkpoint { probe, .. } => probe.as_deref(),
+            _ => None,
+        }
+    }
+
+    /// The probe's P(damaged) per joint for `z`.
+    fn probe_readout(&self, z: Option<&[f32]>) -> Option<[f64; N_ACTUATORS]> {
+        let p = self.probe()?.joint_damage_probabilities(z?);
+        (p.len() == N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
     }
 
     /// The checkpoint folder's name, or the built-in policy's.
@@ -48,6 +96,7 @@ impl Actor {
         match self {
             Actor::Checkpoint { dir, .. } => crate::eval::model_label(dir),
             Actor::Builtin(p) => format!("{p:?}").to_lowercase(),
+            Actor::Scripted(_) => "replay".into(),
         }
     }
 
@@ -55,30 +104,32 @@ impl Actor {
         match self {
             Actor::Checkpoint { policy, .. } => policy.net().encoder.to_string(),
             Actor::Builtin(_) => "none (built-in policy)".into(),
+            Actor::Scripted(_) => "none (scripted actions)".into(),
         }
     }
 
     pub fn checkpoint_dir(&self) -> Option<&Path> {
         match self {
             Actor::Checkpoint { dir, .. } => Some(dir),
-            Actor::Builtin(_) => None,
+            _ => None,
         }
     }
 
     pub fn policy(&self) -> Option<&Policy> {
         match self {
             Actor::Checkpoint { policy, .. } => Some(policy),
-            Actor::Builtin(_) => None,
+            _ => None,
         }
     }
 
     /// The world this actor runs in — the one rule, for every command: a checkpoint's own task
     /// (model, reward, damage model, context: it was trained on them) with the caller's
-    /// condition, scenario and step limit; a built-in policy runs in the requested world.
+    /// condition, scenario and step limit; a built-in policy or a script runs in the requested
+    /// world.
     pub fn world(&self, requested: &GaitConfig) -> GaitConfig {
         match self {
             Actor::Checkpoint { policy, .. } => checkpoint_world(&policy.meta.env, requested),
-            Actor::Builtin(_) => requested.clone(),
+            Actor::Builtin(_) | Actor::Scripted(_) => requested.clone(),
         }
     }
 
@@ -104,14 +155,15 @@ impl Actor {
     pub fn context_len(&self) -> usize {
         match self {
             Actor::Checkpoint { policy, .. } => policy.net().context_len,
-            Actor::Builtin(_) => 1,
+            Actor::Builtin(_) | Actor::Scripted(_) => 1,
         }
     }
 
-    /// The action for `obs` after `window` (and z, for encoder policies); `rng` draws a built-in
-    /// policy's actions and a sampled policy's noise.
+    /// The action for step `step` from `obs` after `window` (and z, for encoder policies);
+    /// `rng` draws a built-in policy's actions and a sampled policy's noise.
     pub fn decide(
         &self,
+        step: usize,
         obs: &Observation,
         window: &ContextWindow,
         rng: &mut ChaCha8Rng,
@@ -128,7 +180,96 @@ impl Actor {
                 Ok((d.action, d.z))
             }
             Actor::Builtin(p) => Ok((p.act(rng).to_vec(), None)),
+            Actor::Scripted(actions) => match actions.get(step) {
+                Some(a) => Ok((a.to_vec(), None)),
+                None => Err(LaneError::ScriptEnded {
+                    step,
+                    len: actions.len(),
+                }),
+            },
         }
+    }
+}
+
+/// One step of a lane, owned: what every sink reads. Sinks that draw geometry read the env
+/// beside it ([`Lane::env`]), which is in the state after this step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepRecord {
+    /// The observation the actor decided from.
+    pub obs_before: Observation,
+    /// The env's side: step index, observation after, reward terms, endings, distance,
+    /// commanded and applied action.
+    pub outcome: StepOutcome,
+    /// The policy's latent for this step (encoder policies).
+    pub z: Option<Vec<f32>>,
+    /// The actor's probe (probe.json), P(damaged) per joint from this step's z: computed here,
+    /// once; every view shows this value.
+    pub probe: Option<[f64; N_ACTUATORS]>,
+    /// The damage state after the step.
+    pub fatigue: [f64; N_ACTUATORS],
+    pub triggered: [bool; N_ACTUATORS],
+    pub scales: [f64; N_ACTUATORS],
+    pub joint_states: [JointState; N_ACTUATORS],
+    pub torso_xy: [f64; 2],
+    /// Per leg (the model's body order), whether its foot touches the floor.
+    pub contacts: [bool; N_LEGS],
+    pub qpos: Vec<f64>,
+    pub qvel: Vec<f64>,
+    /// The damage events that belong to this step: its triggers, and the edits (by hand, by a
+    /// scenario, by a fork) that took effect with it.
+    pub events: Vec<DamageEvent>,
+}
+
+impl StepRecord {
+    fn capture(
+        env: &AntEnv,
+        obs_before: Observation,
+        outcome: StepOutcome,
+        z: Option<Vec<f32>>,
+        probe: Option<[f64; N_ACTUATORS]>,
+    ) -> Self {
+        let damage = env.damage();
+        let events = damage.events();
+        // Events are kept in step order; this step's are the tail with its step.
+        let first = events
+            .iter()
+            .rposition(|e| e.step < outcome.step)
+            .map_or(0, |k| k + 1);
+        let events = events[first..]
+            .iter()
+            .filter(|e| e.step == outcome.step)
+            .cloned()
+            .collect();
+        Self {
+            obs_before,
+            z,
+            probe,
+            fatigue: *damage.fatigue(),
+            triggered: *damage.triggered(),
+            scales: *damage.scale(),
+            joint_states: std::array::from_fn(|i| damage.joint_state(i)),
+            torso_xy: env.torso_xy(),
+            contacts: env.foot_contacts(),
+            qpos: env.qpos().to_vec(),
+            qvel: env.qvel().to_vec(),
+            events,
+            outcome,
+        }
+    }
+
+    /// Env step index in the episode, from 0.
+    pub fn step(&self) -> usize {
+        self.outcome.step
+    }
+
+    /// Whether the episode ended with this step.
+    pub fn done(&self) -> bool {
+        self.outcome.done()
+    }
+
+    /// Joints whose torque is reduced now (triggered by fatigue or failed by hand).
+    pub fn damaged(&self) -> [bool; N_ACTUATORS] {
+        std::array::from_fn(|i| self.triggered[i] && self.scales[i] < 1.0)
     }
 }
 
@@ -186,8 +327,7 @@ struct Run {
     window: ContextWindow,
     obs: Observation,
     rng: ChaCha8Rng,
-    last: Option<StepOutcome>,
-    z: Option<Vec<f32>>,
+    last: Option<StepRecord>,
     done: bool,
 }
 
@@ -221,7 +361,6 @@ impl Lane {
             obs: env.observation(),
             rng: policy_rng(seed),
             last: None,
-            z: None,
             done: true,
         };
         Ok(Self { env, run })
@@ -234,7 +373,6 @@ impl Lane {
         self.run.window.clear();
         self.run.rng = policy_rng(seed);
         self.run.last = None;
-        self.run.z = None;
         self.run.done = false;
     }
 
@@ -248,26 +386,38 @@ impl Lane {
         self.run.obs = self.env.reset_to_state(qpos, qvel, condition)?;
         self.run.window.clear();
         self.run.last = None;
-        self.run.z = None;
         self.run.done = false;
         Ok(())
     }
 
-    /// One env step: the actor decides, the env steps, the window takes the pair. Returns the
-    /// step's outcome (also kept as [`Self::last`]).
-    pub fn advance(&mut self, actor: &Actor, mode: ActionMode) -> Result<&StepOutcome, LaneError> {
-        let (action, z) = actor.decide(&self.run.obs, &self.run.window, &mut self.run.rng, mode)?;
-        self.apply(&action, z)
+    /// One env step — the only place in gaitscope where a lane steps: the actor decides, the
+    /// env steps, the window takes the pair. Returns the step's record (also kept as
+    /// [`Self::last`]).
+    pub fn advance(&mut self, actor: &Actor, mode: ActionMode) -> Result<&StepRecord, LaneError> {
+        let (action, z) = actor.decide(
+            self.env.steps(),
+            &self.run.obs,
+            &self.run.window,
+            &mut self.run.rng,
+            mode,
+        )?;
+        self.apply(actor, &action, z)
     }
 
     /// The step half of [`Self::advance`], for an action decided elsewhere (a batch).
-    fn apply(&mut self, action: &[f64], z: Option<Vec<f32>>) -> Result<&StepOutcome, LaneError> {
+    fn apply(
+        &mut self,
+        actor: &Actor,
+        action: &[f64],
+        z: Option<Vec<f32>>,
+    ) -> Result<&StepRecord, LaneError> {
         let out = self.env.step(action)?;
         self.run.window.push(&self.run.obs, action);
-        self.run.obs = out.obs;
-        self.run.z = z;
+        let obs_before = std::mem::replace(&mut self.run.obs, out.obs);
         self.run.done = out.done();
-        Ok(self.run.last.insert(out))
+        let probe = actor.probe_readout(z.as_deref());
+        let record = StepRecord::capture(&self.env, obs_before, out, z, probe);
+        Ok(self.run.last.insert(record))
     }
 
     /// The lane's state now (a snapshot, a rewind point).
@@ -310,13 +460,17 @@ impl Lane {
     pub fn window(&self) -> &ContextWindow {
         &self.run.window
     }
-    /// The latest step's outcome (none right after a reset).
-    pub fn last(&self) -> Option<&StepOutcome> {
+    /// The latest step's record (none right after a reset).
+    pub fn last(&self) -> Option<&StepRecord> {
         self.run.last.as_ref()
+    }
+    /// The latest step's outcome (none right after a reset).
+    pub fn outcome(&self) -> Option<&StepOutcome> {
+        self.run.last.as_ref().map(|r| &r.outcome)
     }
     /// The latent the policy produced for the latest step (encoder policies).
     pub fn z(&self) -> Option<&[f32]> {
-        self.run.z.as_deref()
+        self.run.last.as_ref()?.z.as_deref()
     }
     pub fn is_done(&self) -> bool {
         self.run.done
@@ -351,7 +505,7 @@ pub fn advance_lockstep(
             let decisions =
                 policy.act_batch(&obs, uses_window.then_some(&windows[..]), mode, None)?;
             for (&i, d) in active.iter().zip(decisions) {
-                lanes[i].apply(&d.action, d.z)?;
+                lanes[i].apply(actor, &d.action, d.z)?;
             }
         }
         _ => {
@@ -446,11 +600,11 @@ mod tests {
                 let run = |lane: &mut Lane| -> Trace {
                     (0..30)
                         .map_while(|_| {
-                            let out = lane.advance(&actor, mode).ok()?.clone();
+                            let r = lane.advance(&actor, mode).ok()?;
                             Some((
-                                out.obs.to_vec(),
-                                out.applied_action,
-                                lane.z().map(<[f32]>::to_vec),
+                                r.outcome.obs.to_vec(),
+                                r.outcome.applied_action,
+                                r.z.clone(),
                             ))
                         })
                         .collect()
@@ -492,7 +646,7 @@ mod tests {
                     za.iter().zip(zb).all(|(x, y)| (x - y).abs() < 1e-5),
                     "{za:?} {zb:?}"
                 );
-                let (oa, ob) = (a.last().unwrap(), b.last().unwrap());
+                let (oa, ob) = (a.outcome().unwrap(), b.outcome().unwrap());
                 assert!(
                     oa.obs
                         .iter()
@@ -541,5 +695,72 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(err.contains("knee_9"), "{err}");
+    }
+
+    #[test]
+    fn a_scripted_lane_steps_as_the_bare_env_and_its_records_carry_the_step() {
+        let world = severe(400);
+        let actions: Vec<Action> = (0..120)
+            .map(|t| std::array::from_fn(|i| ((t * 5 + i * 3) % 11) as f64 / 5.0 - 1.0))
+            .collect();
+        let actor = Actor::Scripted(actions.clone().into());
+        let mut lane = Lane::new(&actor, &world, 9).unwrap();
+        // The independent reference: the env stepped by hand with the same actions.
+        let mut env = AntEnv::new(world, 9).unwrap();
+        let mut obs = env.reset_with_seed(9);
+        let mut triggers = 0;
+        for action in &actions {
+            let record = lane.advance(&actor, ActionMode::Deterministic).unwrap();
+            let out = env.step(action).unwrap();
+            assert_eq!(record.obs_before, obs);
+            assert_eq!(record.outcome, out);
+            assert_eq!(record.fatigue, *env.damage().fatigue());
+            assert_eq!(record.scales, *env.damage().scale());
+            assert_eq!(record.qpos, env.qpos());
+            assert_eq!(record.contacts, env.foot_contacts());
+            // This step's triggers, and only them, are in its record.
+            assert_eq!(record.events.len(), out.new_triggers);
+            assert!(record.events.iter().all(|e| e.step == out.step));
+            triggers += record.events.len();
+            obs = out.obs;
+            if out.done() {
+                break;
+            }
+        }
+        assert_eq!(triggers, env.damage().events().len());
+        assert!(
+            triggers > 0,
+            "a severe episode of 120 steps triggers a joint"
+        );
+        if !lane.is_done() {
+            assert!(matches!(
+                lane.advance(&actor, ActionMode::Deterministic),
+                Err(LaneError::ScriptEnded {
+                    step: 120,
+                    len: 120
+                })
+            ));
+        }
+    }
+
+    #[test]
+    fn a_forks_edits_are_in_its_first_record() {
+        let actor = Actor::Builtin(BuiltinPolicy::Random);
+        let mut lane = Lane::new(&actor, &severe(100), 2).unwrap();
+        for _ in 0..5 {
+            lane.advance(&actor, ActionMode::Deterministic).unwrap();
+        }
+        let edits = crate::damage::DamageEdit::parse_list("fail:hip_1").unwrap();
+        let mut fork = lane.fork(&edits).unwrap();
+        let first = fork.advance(&actor, ActionMode::Deterministic).unwrap();
+        assert_eq!(first.step(), 5);
+        let failed = first
+            .events
+            .iter()
+            .find(|e| e.joint == "hip_1" && e.step == 5)
+            .unwrap_or_else(|| panic!("{:?}", first.events));
+        assert!(first.scales[failed.actuator] < 1.0);
+        let next = fork.advance(&actor, ActionMode::Deterministic).unwrap();
+        assert!(next.events.iter().all(|e| e.joint != "hip_1"));
     }
 }

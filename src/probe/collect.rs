@@ -54,30 +54,27 @@ pub fn collect(
             let episode_seed = seed + (k * Condition::ALL.len() + condition.index()) as u64;
             let mut lane = Lane::new(actor, &requested, episode_seed)?;
             while !lane.is_done() {
-                // The observation and window the actor decides from, before the step.
-                let obs = lane.obs().to_vec();
                 let window = if window_every > 0 && lane.steps() % window_every == 0 {
                     lane.window().as_slice().to_vec()
                 } else {
                     Vec::new()
                 };
                 lane.advance(actor, ActionMode::Deterministic)?;
-                let (env, z) = (lane.env(), lane.z().map(<[f32]>::to_vec));
-                let Some(out) = lane.last() else { break };
-                let damage = env.damage();
+                let (Some(record), damage) = (lane.last(), lane.env().damage()) else {
+                    break;
+                };
                 steps.push(ProbeStep {
                     episode,
-                    t: out.step,
+                    t: record.step(),
                     condition,
-                    z: z.unwrap_or_default(),
-                    obs,
-                    damaged: std::array::from_fn(|i| {
-                        damage.triggered()[i] && damage.scale()[i] < 1.0
-                    }),
-                    fatigue: *damage.fatigue(),
+                    z: record.z.clone().unwrap_or_default(),
+                    // The observation the actor decided from, before the step.
+                    obs: record.obs_before.to_vec(),
+                    damaged: record.damaged(),
+                    fatigue: record.fatigue,
                     first_trigger: damage.first_trigger_steps().iter().flatten().min().copied(),
                     joint_triggers: damage.first_trigger_steps(),
-                    progress: out.reward.progress,
+                    progress: record.outcome.reward.progress,
                     window,
                 });
             }

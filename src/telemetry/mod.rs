@@ -449,11 +449,10 @@ pub struct AntLogger {
     torso: Option<(usize, f32)>,
     floor_half: Option<[f32; 2]>,
     joint_names: Vec<String>,
-    probe: Option<ProbeFile>,
+    probe: Option<std::sync::Arc<ProbeFile>>,
     trail: Vec<[f32; 3]>,
     /// PCA projections of this episode (up to 3 axes) with their colour (triggered joints).
     pca_trail: Vec<([f32; 3], rerun::Color)>,
-    logged_events: usize,
     static_logged: bool,
     dt: f64,
     threshold: f64,
@@ -531,7 +530,12 @@ fn color([r, g, b, a]: [u8; 4]) -> rerun::Color {
 }
 
 impl AntLogger {
-    pub fn new(rec: RecordingStream, root: &str, env: &AntEnv, probe: Option<ProbeFile>) -> Self {
+    pub fn new(
+        rec: RecordingStream,
+        root: &str,
+        env: &AntEnv,
+        probe: Option<std::sync::Arc<ProbeFile>>,
+    ) -> Self {
         let model = env.physics().model();
         let mut capsules = Vec::new();
         let (mut torso, mut floor_half) = (None, None);
@@ -578,7 +582,6 @@ impl AntLogger {
             probe,
             trail: Vec::new(),
             pca_trail: Vec::new(),
-            logged_events: 0,
             static_logged: false,
             dt: env.dt(),
             threshold: env.config().damage.threshold,
@@ -626,7 +629,7 @@ impl AntLogger {
     }
 
     pub fn probe(&self) -> Option<&ProbeFile> {
-        self.probe.as_ref()
+        self.probe.as_deref()
     }
 
     fn path(&self, leaf: &str) -> String {
@@ -792,7 +795,6 @@ impl AntLogger {
         if outcome.is_none() {
             self.trail.clear();
             self.pca_trail.clear();
-            self.logged_events = 0;
             self.rec
                 .log(self.path("world/ending").as_str(), &rerun::Clear::flat())?;
         }
@@ -839,21 +841,17 @@ impl AntLogger {
         Ok(())
     }
 
-    /// After a rewind to `steps` steps of the episode: trails cut back, events after
-    /// `events` written again when they recur, gait lanes re-logged.
-    pub fn rewind_to(&mut self, steps: usize, events: usize) {
+    /// After a rewind to `steps` steps of the episode: trails cut back, gait lanes re-logged.
+    pub fn rewind_to(&mut self, steps: usize) {
         self.trail.truncate(steps);
         self.pca_trail.truncate(steps);
-        self.logged_events = events;
         self.gait_states = [None; crate::env::N_LEGS];
     }
 
-    /// A fork's logger starts with the paths drawn so far by the lane it forks from, and logs
-    /// only the events from the fork on.
+    /// A fork's logger starts with the paths drawn so far by the lane it forks from.
     pub fn continue_from(&mut self, other: &AntLogger) {
         self.trail = other.trail.clone();
         self.pca_trail = other.pca_trail.clone();
-        self.logged_events = other.logged_events;
     }
 
     /// A debugger note in this lane's event log, at the current time, with its own level.
@@ -880,20 +878,17 @@ impl AntLogger {
         Ok(())
     }
 
-    /// Everything about the state after one env step (timelines must be set first).
-    /// `readout`: the probe's P(damaged) per joint from this step's z, computed once by the
-    /// session (the panel and the page read the same value).
+    /// Everything about one env step (timelines must be set first): `record` says what
+    /// happened, `env` (in the state after the step) gives the geometry to draw.
     pub fn log_step(
         &mut self,
         env: &AntEnv,
-        out: &StepOutcome,
-        z: Option<&[f32]>,
-        readout: Option<&[f64; N_ACTUATORS]>,
+        record: &crate::lane::StepRecord,
     ) -> Result<(), TelemetryError> {
         if !self.static_logged {
             self.log_static(env)?;
         }
-        let damage = env.damage();
+        let out = &record.outcome;
         let physics = env.physics();
         // The Ant: poses from MuJoCo's geom frames (Rerun's capsule starts at its origin and runs
         // along +z, MuJoCo's is centred), leg colours from the damage state.
@@ -907,8 +902,8 @@ impl AntLogger {
             rotations.push(rerun::Quaternion::from_xyzw(q.to_array()));
             colors.push(match c.actuator {
                 Some(i) => color(damage_color(
-                    damage.joint_state(i),
-                    damage.fatigue()[i],
+                    record.joint_states[i],
+                    record.fatigue[i],
                     self.threshold,
                 )),
                 None => color(c.rgba),
@@ -967,10 +962,10 @@ impl AntLogger {
         let scalars = |v: &[f64]| rerun::Scalars::new(v.iter().copied());
         self.rec.log(
             self.path("joints/fatigue").as_str(),
-            &scalars(damage.fatigue()),
+            &scalars(&record.fatigue),
         )?;
         self.rec
-            .log(self.path("joints/scale").as_str(), &scalars(damage.scale()))?;
+            .log(self.path("joints/scale").as_str(), &scalars(&record.scales))?;
         self.rec.log(
             self.path("actions/commanded").as_str(),
             &scalars(&out.commanded_action),
@@ -981,11 +976,10 @@ impl AntLogger {
         )?;
         // Gait diagram: per leg a state lane, "stance" states named by the leg's damage while the
         // foot is on the floor, a gap (an empty state) while it swings; logged on changes only.
-        let contacts = env.foot_contacts();
         for (leg, name) in env.leg_names().iter().enumerate() {
-            let state = if contacts[leg] {
+            let state = if record.contacts[leg] {
                 let joints = (0..N_ACTUATORS).filter(|&i| env.leg_of_actuator()[i] == leg);
-                let states: Vec<JointState> = joints.map(|i| damage.joint_state(i)).collect();
+                let states: Vec<JointState> = joints.map(|i| record.joint_states[i]).collect();
                 if states.contains(&JointState::Triggered) {
                     GAIT_STATES[1]
                 } else if states.contains(&JointState::Manual) {
@@ -1004,9 +998,9 @@ impl AntLogger {
                 self.gait_states[leg] = Some(state);
             }
         }
-        // Events since the last step, as text (the state changes are in the series above).
+        // This step's events, as text (the state changes are in the series above).
         // The text's step is the row's (the `step` column), so the two never disagree.
-        for e in &damage.events()[self.logged_events..] {
+        for e in &record.events {
             let level = match &e.kind {
                 DamageEventKind::Trigger => rerun::TextLogLevel::WARN,
                 DamageEventKind::Override { .. } => rerun::TextLogLevel::INFO,
@@ -1017,7 +1011,6 @@ impl AntLogger {
                 &rerun::TextLog::new(text).with_level(level),
             )?;
         }
-        self.logged_events = damage.events().len();
         let r = out.reward;
         self.rec.log(
             self.path("reward").as_str(),
@@ -1032,7 +1025,7 @@ impl AntLogger {
             &rerun::Scalars::single(r.progress / self.dt),
         )?;
         // The latent, its PCA projection and the probes' readout.
-        if let Some(z) = z {
+        if let Some(z) = record.z.as_deref() {
             if let Some(style) = &self.series_style
                 && self.z_named != Some(z.len())
             {
@@ -1054,7 +1047,8 @@ impl AntLogger {
                 let p = probe.pca.project(&z64);
                 let axis = |k: usize| p.get(k).copied().unwrap_or(0.0) as f32;
                 // Coloured by the number of triggered joints, as in the probe's PCA figure.
-                let current = self.pca_palette[damage.n_triggered()];
+                let n_triggered = record.triggered.iter().filter(|&&t| t).count();
+                let current = self.pca_palette[n_triggered];
                 self.pca_trail.push(([axis(0), axis(1), axis(2)], current));
                 self.rec.log(
                     self.path("latent/pca").as_str(),
@@ -1084,11 +1078,11 @@ impl AntLogger {
                             .with_colors(trail.iter().map(|(_, c)| *c)),
                     )?;
                 }
-                if let Some(predicted) = readout {
-                    let truth: Vec<f64> = (0..N_ACTUATORS)
-                        .map(|i| {
-                            f64::from(u8::from(damage.triggered()[i] && damage.scale()[i] < 1.0))
-                        })
+                if let Some(predicted) = &record.probe {
+                    let truth: Vec<f64> = record
+                        .damaged()
+                        .iter()
+                        .map(|&d| f64::from(u8::from(d)))
                         .collect();
                     self.rec
                         .log(self.path("probe/predicted").as_str(), &scalars(predicted))?;

@@ -7,7 +7,8 @@ use rerun::RecordingStream;
 use super::{AntLogger, EpisodeMeta, Sink, TelemetryError};
 use crate::config::GaitConfig;
 use crate::damage::{DamageEdit, JointOverride, N_ACTUATORS};
-use crate::env::{AntEnv, StepOutcome};
+use crate::env::AntEnv;
+use crate::lane::StepRecord;
 use crate::policy::ActionMode;
 
 pub use crate::lane::Actor;
@@ -38,9 +39,8 @@ pub const HISTORY_CAP: usize = 10_000;
 /// steps bit for bit.
 #[derive(Debug, Clone)]
 pub struct LaneSnapshot {
-    /// The stepping core's state (env, window, observation, RNG, latest step).
+    /// The stepping core's state (env, window, observation, RNG, latest step's record).
     state: crate::lane::LaneState,
-    probe_now: Option<[f64; N_ACTUATORS]>,
 }
 
 impl LaneSnapshot {
@@ -61,9 +61,8 @@ pub struct Lane {
     /// The stepping core's lane: env, window, observation, RNG, latest step.
     core: crate::lane::Lane,
     logger: AntLogger,
-    /// The probe's P(damaged) per joint before and after the latest step (with a probe.json).
+    /// The probe's P(damaged) per joint before the latest step (after it: the step's record).
     probe_before: Option<[f64; N_ACTUATORS]>,
-    probe_now: Option<[f64; N_ACTUATORS]>,
     /// For a fork lane: what it was forked from, in words.
     fork_of: Option<String>,
     /// The session's global step of this lane's latest step.
@@ -85,25 +84,24 @@ impl Lane {
         config: &GaitConfig,
         seed: u64,
     ) -> Result<Self, RecordError> {
+        // Its probe (probe.json) too: each step's record carries the readout the views show.
+        let actor = spec.actor.with_probe()?;
         // Not started: done until the session's first episode resets it.
-        let core = crate::lane::Lane::unstarted(&spec.actor, config, seed)?;
-        let probe = match spec.actor.checkpoint_dir() {
-            Some(dir) if dir.join(crate::probe::PROBE_FILE).exists() => {
-                Some(crate::probe::ProbeFile::load(dir)?)
-            }
+        let core = crate::lane::Lane::unstarted(&actor, config, seed)?;
+        let probe = match &actor {
+            Actor::Checkpoint { probe, .. } => probe.clone(),
             _ => None,
         };
         let logger = AntLogger::new(rec.clone(), &spec.root, core.env(), probe)
             .with_world_offset(spec.world_offset);
         Ok(Self {
-            actor: spec.actor,
+            actor,
             base_root: spec.root.clone(),
             base_logger: None,
             root: spec.root,
             core,
             logger,
             probe_before: None,
-            probe_now: None,
             fork_of: None,
             stepped_at: 0,
         })
@@ -113,7 +111,6 @@ impl Lane {
     pub fn snapshot(&self) -> LaneSnapshot {
         LaneSnapshot {
             state: self.core.state(),
-            probe_now: self.probe_now,
         }
     }
 
@@ -121,16 +118,9 @@ impl Lane {
     /// with it.
     fn restore(&mut self, snapshot: &LaneSnapshot) -> Result<(), RecordError> {
         self.core.restore(&snapshot.state)?;
-        self.probe_before = snapshot.probe_now;
-        self.probe_now = snapshot.probe_now;
-        self.logger
-            .rewind_to(snapshot.steps(), self.core.env().damage().events().len());
+        self.probe_before = self.probe_now().copied();
+        self.logger.rewind_to(snapshot.steps());
         Ok(())
-    }
-
-    fn probe_readout(&self, z: Option<&[f32]>) -> Option<[f64; N_ACTUATORS]> {
-        let p = self.logger.probe()?.joint_damage_probabilities(z?);
-        (p.len() == N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
     }
 
     pub fn actor(&self) -> &Actor {
@@ -142,8 +132,8 @@ impl Lane {
     pub fn env(&self) -> &AntEnv {
         self.core.env()
     }
-    /// The outcome of this episode's latest step (none right after a reset).
-    pub fn last(&self) -> Option<&StepOutcome> {
+    /// The record of this episode's latest step (none right after a reset).
+    pub fn last(&self) -> Option<&StepRecord> {
         self.core.last()
     }
     /// The latent the policy produced for the latest step (encoder policies).
@@ -159,19 +149,7 @@ impl Lane {
     /// The damage events of the latest step: its triggers, and the edits that took effect with
     /// it (an event's `step` is the first step it shapes).
     pub fn step_events(&self) -> &[crate::damage::DamageEvent] {
-        let events = self.core.env().damage().events();
-        let Some(last) = self.core.last() else {
-            return &[];
-        };
-        let first = events
-            .iter()
-            .rposition(|e| e.step < last.step)
-            .map_or(0, |k| k + 1);
-        let end = events
-            .iter()
-            .rposition(|e| e.step <= last.step)
-            .map_or(0, |k| k + 1);
-        &events[first..end.max(first)]
+        self.core.last().map_or(&[], |r| &r.events)
     }
     /// The probe's P(damaged) per joint before the latest step.
     pub fn probe_before(&self) -> Option<&[f64; N_ACTUATORS]> {
@@ -179,7 +157,7 @@ impl Lane {
     }
     /// The probe's P(damaged) per joint after the latest step.
     pub fn probe_now(&self) -> Option<&[f64; N_ACTUATORS]> {
-        self.probe_now.as_ref()
+        self.core.last()?.probe.as_ref()
     }
     /// The session's global step (the `step` timeline) of this lane's latest step.
     pub fn stepped_at(&self) -> u64 {
@@ -412,8 +390,7 @@ impl Session {
         for edit in edits {
             lane.core.env_mut().apply_edit(edit)?;
         }
-        lane.probe_now = state.probe_now;
-        lane.probe_before = state.probe_now;
+        lane.probe_before = lane.probe_now().copied();
         lane.fork_of = Some(described.clone());
         let episode = self.episodes_started.saturating_sub(1);
         lane.logger.set_time(self.global_step, episode);
@@ -513,7 +490,6 @@ impl Session {
                 .set_fatigue_triggers(self.fatigue_triggers);
             lane.core.reset(seed);
             lane.probe_before = None;
-            lane.probe_now = None;
             lane.logger.set_time(self.global_step, episode);
             let meta = episode_meta(self.fatigue_triggers, seed, &lane.actor, lane.core.env());
             lane.logger.log_episode(&meta, lane.core.env(), None)?;
@@ -540,16 +516,16 @@ impl Session {
             if lane.core.is_done() {
                 continue;
             }
-            // The stepping core steps; this loop only reads what it left, for the sinks.
-            let out = lane.core.advance(&lane.actor, self.mode)?.clone();
-            let z = lane.core.z().map(<[f32]>::to_vec);
-            let probe_now = lane.probe_readout(z.as_deref());
-            lane.probe_before = lane.probe_now;
-            lane.probe_now = probe_now;
+            lane.probe_before = lane.probe_now().copied();
+            // The stepping core steps; the sinks only read its record.
+            lane.core.advance(&lane.actor, self.mode)?;
+            let Some(record) = lane.core.last() else {
+                continue;
+            };
             lane.stepped_at = self.global_step;
             lane.logger.set_time(self.global_step, episode);
-            lane.logger
-                .log_step(lane.core.env(), &out, z.as_deref(), lane.probe_now.as_ref())?;
+            lane.logger.log_step(lane.core.env(), record)?;
+            let out = &record.outcome;
             if out.done() {
                 let meta = episode_meta(
                     self.fatigue_triggers,
@@ -557,8 +533,7 @@ impl Session {
                     &lane.actor,
                     lane.core.env(),
                 );
-                lane.logger
-                    .log_episode(&meta, lane.core.env(), Some(&out))?;
+                lane.logger.log_episode(&meta, lane.core.env(), Some(out))?;
                 ended.push(i);
             }
         }

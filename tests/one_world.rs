@@ -1,0 +1,226 @@
+//! One checkpoint, one world: a checkpoint trained in a non-default world (fatigue threshold
+//! 10, window 8) runs in that world under every front-end — `rollout`, `record`, `live`,
+//! `eval`, `probe` (and `video`, in tests/video.rs) — step for step the same episode, which an
+//! independent replay of its actions on a bare env in that world reproduces.
+
+use gaitscope::app::{Command, LIVE_ROOTS, LiveCondition, LiveSetup, SimHandle};
+use gaitscope::damage::{Condition, ConditionChoice};
+use gaitscope::lane::Actor;
+use gaitscope::policy::ActionMode;
+use gaitscope::telemetry::{RecordOptions, Sink, open, record};
+use gaitscope::{AntEnv, GaitConfig};
+use std::path::Path;
+use std::time::Duration;
+
+mod common;
+
+const SEED: u64 = 5;
+const MAX_STEPS: usize = 300;
+const THRESHOLD: f64 = 10.0;
+
+/// The request every front-end gets: severe, 300 steps, and otherwise the defaults (τ = 30).
+fn requested() -> GaitConfig {
+    let mut c = GaitConfig::default();
+    c.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+    c.env.max_episode_steps = MAX_STEPS;
+    c
+}
+
+/// What each front-end shows of a step.
+#[derive(Debug, Clone, PartialEq)]
+struct Step {
+    fatigue: [f64; 8],
+    applied: [f64; 8],
+}
+
+/// The reference: `gaitscope rollout --checkpoint … --jsonl`, and its commanded actions.
+fn rollout(dir: &Path) -> (Vec<Step>, Vec<[f64; 8]>, Vec<serde_json::Value>) {
+    let lines = common::gaitscope_json_lines([
+        "rollout",
+        "--checkpoint",
+        dir.to_str().unwrap(),
+        "--condition",
+        "severe",
+        "--episodes",
+        "1",
+        "--seed",
+        &SEED.to_string(),
+        "--max-steps",
+        &MAX_STEPS.to_string(),
+        "--jsonl",
+    ])
+    .unwrap();
+    let eight =
+        |v: &serde_json::Value| -> [f64; 8] { std::array::from_fn(|i| v[i].as_f64().unwrap()) };
+    let steps = lines
+        .iter()
+        .map(|l| Step {
+            fatigue: eight(&l["fatigue"]),
+            applied: eight(&l["applied_action"]),
+        })
+        .collect();
+    let actions = lines.iter().map(|l| eight(&l["action"])).collect();
+    (steps, actions, lines)
+}
+
+fn assert_same(front_end: &str, got: &[Step], want: &[Step]) {
+    assert_eq!(got.len(), want.len(), "{front_end}: episode length");
+    for (t, (g, w)) in got.iter().zip(want).enumerate() {
+        assert_eq!(g, w, "{front_end}: step {t}");
+    }
+}
+
+#[test]
+fn a_checkpoint_runs_in_its_own_world_under_every_front_end() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("tau10");
+    common::save_checkpoint_in_world(&dir, THRESHOLD, 8);
+    let (reference, actions, lines) = rollout(&dir);
+
+    // The world is the checkpoint's: the first trigger fires at fatigue 10 … 30, not past 30.
+    let first = lines
+        .iter()
+        .find_map(|l| {
+            let t = l["triggered"].as_array().unwrap();
+            let i = t.iter().position(|v| v == true)?;
+            Some(l["fatigue"][i].as_f64().unwrap())
+        })
+        .expect("300 severe steps trigger a joint at τ = 10");
+    assert!((THRESHOLD..30.0).contains(&first), "triggered at {first}");
+
+    // An independent replay: a bare env built in that world by hand, the same actions.
+    let mut world = requested();
+    world.damage.threshold = THRESHOLD;
+    world.context.len = 8;
+    let mut env = AntEnv::new(world, SEED).unwrap();
+    env.reset_with_seed(SEED);
+    let replayed: Vec<Step> = actions
+        .iter()
+        .map(|a| {
+            let out = env.step(a).unwrap();
+            Step {
+                fatigue: *env.damage().fatigue(),
+                applied: out.applied_action,
+            }
+        })
+        .collect();
+    assert_same("replay on a bare env", &replayed, &reference);
+
+    // record: the recording's fatigue and applied-action series, read back.
+    let actor = Actor::load(&dir).unwrap();
+    let summary = record(
+        RecordOptions {
+            actors: vec![actor.clone()],
+            config: requested(),
+            episodes: 1,
+            seed: SEED,
+            sink: Sink::Memory,
+            fork: None,
+        },
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .unwrap();
+    let chunks = common::recording_chunks(summary.storage.unwrap().take());
+    let fatigue = common::joint_series(&chunks, "/ant/joints/fatigue");
+    let applied = common::joint_series(&chunks, "/ant/actions/applied");
+    let recorded: Vec<Step> = fatigue
+        .values()
+        .zip(applied.values())
+        .map(|(f, a)| Step {
+            fatigue: *f,
+            applied: *a,
+        })
+        .collect();
+    assert_same("record", &recorded, &reference);
+
+    // live: the simulation thread, stepped one step at a time, read from its snapshots.
+    let (rec, _storage) = open(
+        &Sink::Memory,
+        "one-world",
+        &LIVE_ROOTS.iter().map(|r| r.to_string()).collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let sim = SimHandle::spawn(
+        rec,
+        LiveSetup {
+            checkpoint: dir.clone(),
+            compare: None,
+            condition: LiveCondition::Severe,
+            seed: SEED,
+            speed: 8.0,
+            step_limit: MAX_STEPS,
+            mode: ActionMode::Deterministic,
+            paused: true,
+            breakpoints: Vec::new(),
+            fork: None,
+            config: GaitConfig::default(),
+        },
+    )
+    .unwrap();
+    let mut live = Vec::new();
+    let wait = Duration::from_secs(20);
+    while live.len() < reference.len() {
+        let before = sim.snapshot().global_step;
+        assert!(sim.send(Command::StepOnce));
+        let s = sim.wait_for(wait, |s| s.global_step == before + 1);
+        assert_eq!(s.global_step, before + 1, "live took the step");
+        assert_eq!(s.episode_seed, SEED);
+        let lane = &s.lanes[0];
+        live.push(Step {
+            fatigue: lane.fatigue,
+            applied: lane.applied,
+        });
+        if lane.done {
+            break;
+        }
+    }
+    assert_eq!(sim.snapshot().lanes[0].threshold, THRESHOLD);
+    assert_same("live", &live, &reference);
+    drop(sim);
+
+    // eval: the episode's length, return and trigger steps.
+    let report = gaitscope::eval::evaluate(&gaitscope::eval::EvalOptions {
+        checkpoints: vec![dir.clone()],
+        episodes: 1,
+        seed_base: SEED,
+        conditions: vec![gaitscope::eval::Case::Condition(Condition::Severe)],
+        scenarios: Vec::new(),
+        max_steps: MAX_STEPS,
+        threads: 1,
+    })
+    .unwrap();
+    let episode = &report.episodes[0];
+    assert_eq!(episode.steps, reference.len(), "eval: episode length");
+    let rollout_return: f64 = lines.iter().map(|l| l["reward"].as_f64().unwrap()).sum();
+    assert!(
+        (episode.episode_return - rollout_return).abs() < 1e-9,
+        "eval return {} vs rollout {rollout_return}",
+        episode.episode_return
+    );
+    let first_triggers: [Option<usize>; 8] =
+        std::array::from_fn(|i| lines.iter().position(|l| l["triggered"][i] == true));
+    assert_eq!(episode.trigger_steps, first_triggers, "eval: trigger steps");
+
+    // probe: its collector's episode under severe (seed + condition index) is this episode.
+    let steps = gaitscope::probe::collect(
+        &actor,
+        1,
+        MAX_STEPS,
+        SEED - Condition::Severe.index() as u64,
+        0,
+    )
+    .unwrap();
+    let severe: Vec<_> = steps
+        .iter()
+        .filter(|s| s.condition == Condition::Severe)
+        .collect();
+    assert_eq!(severe.len(), reference.len(), "probe: episode length");
+    for (t, s) in severe.iter().enumerate() {
+        assert_eq!(s.fatigue, reference[t].fatigue, "probe: step {t}");
+        // The observation the policy decided from: the previous step's.
+        if t > 0 {
+            let obs: Vec<f64> = serde_json::from_value(lines[t - 1]["obs"].clone()).unwrap();
+            assert_eq!(s.obs, obs, "probe: observation before step {t}");
+        }
+    }
+}
