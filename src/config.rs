@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-use crate::damage::ConditionChoice;
+pub use crate::damage::{ConditionScales, DamageConfig};
 
 /// Physics steps per env step, at most (Ant-v4: 5).
 pub const MAX_FRAME_SKIP: usize = 1_000;
@@ -68,56 +68,6 @@ impl Default for EnvConfig {
             progress_weight: 50.0,
             success_bonus: 200.0,
             max_episode_steps: 1000,
-        }
-    }
-}
-
-/// The fatigue model (the paper's "DamageWrapper").
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct DamageConfig {
-    /// Fatigue per unit of |commanded action| per step.
-    pub alpha: f64,
-    /// Fatigue per unit of ‖cfrc_ext‖₂ on the actuated body per step.
-    pub beta: f64,
-    /// Fatigue at which an actuator triggers (permanently, for the episode).
-    pub threshold: f64,
-    pub scales: ConditionScales,
-    /// How each episode's condition is chosen.
-    pub condition: ConditionChoice,
-    /// Scripted damage on top (or instead) of fatigue ([`crate::scenario`]).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub scenario: Option<crate::scenario::Scenario>,
-}
-
-impl Default for DamageConfig {
-    fn default() -> Self {
-        Self {
-            alpha: 1.0,
-            beta: 0.1,
-            threshold: 30.0,
-            scales: ConditionScales::default(),
-            condition: ConditionChoice::Random,
-            scenario: None,
-        }
-    }
-}
-
-/// Torque scale applied to a triggered actuator, per condition.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ConditionScales {
-    pub healthy: f64,
-    pub mild: f64,
-    pub severe: f64,
-}
-
-impl Default for ConditionScales {
-    fn default() -> Self {
-        Self {
-            healthy: 1.0,
-            mild: 0.5,
-            severe: 0.1,
         }
     }
 }

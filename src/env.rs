@@ -61,7 +61,7 @@ pub enum EnvError {
     #[error(transparent)]
     Config(#[from] ConfigError),
     #[error(transparent)]
-    Scenario(#[from] crate::scenario::ScenarioError),
+    Scenario(#[from] crate::damage::scenario::ScenarioError),
 }
 
 /// One actuator's place in the model: actuator → joint → body.
@@ -159,7 +159,7 @@ pub struct AntEnv {
     done: bool,
     unstable_warnings: i32,
     /// This episode's schedule, when the config names a scenario.
-    plan: Option<crate::scenario::ScenarioPlan>,
+    plan: Option<crate::damage::scenario::ScenarioPlan>,
 }
 
 /// Everything that decides an env's future, restorable exactly: MuJoCo's integration state
@@ -174,7 +174,7 @@ pub struct EnvSnapshot {
     prev_distance: f64,
     last_xy: [f64; 2],
     done: bool,
-    plan: Option<crate::scenario::ScenarioPlan>,
+    plan: Option<crate::damage::scenario::ScenarioPlan>,
 }
 
 impl EnvSnapshot {
@@ -278,7 +278,7 @@ impl AntEnv {
         let mut condition = condition;
         self.plan = None;
         if let Some(scenario) = self.config.damage.scenario.clone() {
-            use crate::scenario::FatigueRule;
+            use crate::damage::scenario::FatigueRule;
             match scenario.fatigue {
                 FatigueRule::Off => self.damage.set_fatigue_triggers(false),
                 FatigueRule::On => self.damage.set_fatigue_triggers(true),
@@ -465,8 +465,8 @@ impl AntEnv {
     }
 
     /// Joint and leg names, for resolving scenario targets.
-    pub fn joint_map(&self) -> crate::scenario::JointMap {
-        crate::scenario::JointMap {
+    pub fn joint_map(&self) -> crate::damage::scenario::JointMap {
+        crate::damage::scenario::JointMap {
             joints: self.damage.joint_names().to_vec(),
             legs: self.leg_names.to_vec(),
             leg_of: self.leg_of_actuator.to_vec(),
@@ -474,7 +474,7 @@ impl AntEnv {
     }
 
     /// This episode's scenario schedule, if any.
-    pub fn scenario_plan(&self) -> Option<&crate::scenario::ScenarioPlan> {
+    pub fn scenario_plan(&self) -> Option<&crate::damage::scenario::ScenarioPlan> {
         self.plan.as_ref()
     }
 

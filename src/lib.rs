@@ -16,7 +16,6 @@ pub mod policy;
 pub mod probe;
 pub mod progress;
 pub mod rollout;
-pub mod scenario;
 pub mod telemetry;
 pub mod train;
 #[cfg(feature = "video")]

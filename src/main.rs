@@ -94,7 +94,7 @@ impl EnvArgs {
             config.env.model_path = Some(model.clone());
         }
         if let Some(scenario) = &self.scenario {
-            config.damage.scenario = Some(gaitscope::scenario::Scenario::load(scenario)?);
+            config.damage.scenario = Some(gaitscope::damage::scenario::Scenario::load(scenario)?);
         }
         Ok(config)
     }
@@ -364,8 +364,8 @@ struct VideoArgs {
     #[arg(long, default_value_t = 20)]
     fps: u32,
     /// track: follow the torso; fixed: a still view of start and goal.
-    #[arg(long, default_value = "track", value_name = "track|fixed")]
-    camera: String,
+    #[arg(long, value_enum, default_value_t = gaitscope::video::CameraMode::Track)]
+    camera: gaitscope::video::CameraMode,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -1158,11 +1158,7 @@ fn video_command(args: VideoArgs) -> Result<()> {
         width: args.width,
         height: args.height,
         fps: args.fps,
-        camera: match args.camera.as_str() {
-            "track" => gaitscope::video::CameraMode::Track,
-            "fixed" => gaitscope::video::CameraMode::Fixed,
-            other => bail!("--camera {other}: expected track or fixed"),
-        },
+        camera: args.camera,
     };
     spec.check()?;
     if args.out.extension().and_then(|e| e.to_str()) != Some("mp4") {
@@ -1263,7 +1259,7 @@ fn suite_help() -> String {
     let mut help = String::from(
         "A built-in suite of scenarios, each its own column (fatigue off in all):\n\nood:",
     );
-    for s in gaitscope::scenario::Scenario::suite("ood").unwrap_or_default() {
+    for s in gaitscope::damage::scenario::Scenario::suite("ood").unwrap_or_default() {
         help += &format!("\n  {:<18} {}", s.name, s.description);
     }
     help
@@ -1297,7 +1293,7 @@ fn eval_command(args: EvalArgs) -> Result<()> {
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     use gaitscope::eval::Case;
-    let scenarios = gaitscope::scenario::collect(&args.scenario, &args.suite)?;
+    let scenarios = gaitscope::damage::scenario::collect(&args.scenario, &args.suite)?;
     for (i, s) in scenarios.iter().enumerate() {
         if scenarios[..i].iter().any(|t| t.name == s.name) {
             bail!(

@@ -6,8 +6,6 @@
 //! - actions: `[[8 numbers], ...]`
 //! - output: one [`StepLine`] JSON object per line, the state after step `t`.
 
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -15,30 +13,7 @@ use std::path::{Path, PathBuf};
 use crate::damage::{Condition, N_ACTUATORS};
 use crate::env::{ACT_DIM, Action, AntEnv, EnvError, NQ, NV, StepOutcome};
 
-/// Policies that need no checkpoint.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum BuiltinPolicy {
-    /// Uniform in [−1, 1]⁸ from a seeded RNG.
-    Random,
-    /// All zeros: the Ant stands still.
-    Zero,
-}
-
-impl BuiltinPolicy {
-    pub fn act(self, rng: &mut impl Rng) -> Action {
-        match self {
-            BuiltinPolicy::Random => std::array::from_fn(|_| rng.random_range(-1.0..=1.0)),
-            BuiltinPolicy::Zero => [0.0; ACT_DIM],
-        }
-    }
-}
-
-/// The RNG a built-in policy acts from in the episode seeded with `seed`: a stream distinct from
-/// the env's, so the policy does not shift the env's draws.
-pub fn policy_rng(seed: u64) -> ChaCha8Rng {
-    ChaCha8Rng::seed_from_u64(seed ^ 0x9E37_79B9_7F4A_7C15)
-}
+pub use crate::lane::{BuiltinPolicy, policy_rng};
 
 /// One episode in a line (or one JSON object).
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -329,6 +329,15 @@ fn missing_files_and_bad_flags_are_clear() {
         "{}",
         stderr(&out)
     );
+
+    // A camera the renderer has no mode for: the flag's own values, before anything renders.
+    let out = gaitscope(&["video", "--camera", "orbit", "--out", "/tmp/never.mp4"]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("possible values: track, fixed"),
+        "{}",
+        stderr(&out)
+    );
 }
 
 /// `gaitscope` with a chosen display environment (the live viewer's checks come first).

@@ -391,7 +391,7 @@ fn pause_drops_the_steps_still_queued() {
 #[test]
 fn a_scenario_with_an_unknown_joint_is_refused_and_resets_still_work() {
     let (_dir, sim, _storage) = started(LiveCondition::Severe);
-    let bad = gaitscope::scenario::Scenario::from_json(
+    let bad = gaitscope::damage::scenario::Scenario::from_json(
         r#"{"name": "bad", "fatigue": false, "edits": [{"step": 0, "joint": "knee_9", "scale": 0.1}]}"#,
         "test",
     )

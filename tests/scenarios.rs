@@ -3,10 +3,10 @@
 //! live "save overrides" → `rollout --scenario` round trip.
 
 use gaitscope::app::{Command, LIVE_ROOTS, LiveCondition, LiveSetup, SimHandle};
+use gaitscope::damage::scenario::Scenario;
 use gaitscope::damage::{DamageEventKind, JointOverride};
 use gaitscope::policy::ActionMode;
 use gaitscope::rollout::BuiltinPolicy;
-use gaitscope::scenario::Scenario;
 use gaitscope::telemetry::{Sink, open};
 use gaitscope::{AntEnv, GaitConfig};
 use serde_json::Value;

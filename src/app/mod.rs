@@ -143,7 +143,7 @@ pub enum Command {
     /// Stop the fork lane.
     EndFork,
     /// Run this scenario from the next episode on (`None`: back to the condition alone).
-    SetScenario(Option<crate::scenario::Scenario>),
+    SetScenario(Option<crate::damage::scenario::Scenario>),
     /// Write this episode's hand-made overrides (main model) as a scenario file.
     SaveScenario(PathBuf),
     /// Stop the simulation thread.

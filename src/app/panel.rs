@@ -287,7 +287,7 @@ impl Panel {
                     .desired_width(150.0),
             );
             if ui.button("Use").clicked() {
-                match crate::scenario::Scenario::load(self.scenario_text.trim()) {
+                match crate::damage::scenario::Scenario::load(self.scenario_text.trim()) {
                     Ok(scenario) => {
                         self.scenario_error = None;
                         self.send(Command::SetScenario(Some(scenario)));

@@ -715,7 +715,7 @@ impl Sim {
     fn recorded_scenario(&self, name: &str) -> Option<serde_json::Value> {
         let env = self.session.lanes().first()?.env();
         let fatigue = env.damage().fatigue_triggers().then(|| env.condition());
-        Some(crate::scenario::from_events(
+        Some(crate::damage::scenario::from_events(
             name,
             fatigue,
             env.damage().events(),

@@ -381,7 +381,7 @@ impl WebServer {
     fn statics(&self) -> Value {
         json!({
             "checkpoints": self.checkpoints.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
-            "scenarios": crate::scenario::OOD_SUITE.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
+            "scenarios": crate::damage::scenario::OOD_SUITE.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
             "viewer_url": self.options.viewer_url(),
             "limits": { "min_speed": MIN_SPEED, "max_speed": MAX_SPEED, "max_steps": MAX_STEPS_PER_REQUEST },
         })
@@ -635,16 +635,24 @@ pub fn commands(
                     return Err("give a scenario's name or its JSON, not both".into());
                 }
                 (Some(name), None) => {
-                    if !crate::scenario::OOD_SUITE.iter().any(|(n, _)| *n == name) {
+                    if !crate::damage::scenario::OOD_SUITE
+                        .iter()
+                        .any(|(n, _)| *n == name)
+                    {
                         return Err(format!(
                             "no bundled scenario '{name}' (bundled: {}; or upload a file)",
-                            crate::scenario::OOD_SUITE.map(|(n, _)| n).join(", ")
+                            crate::damage::scenario::OOD_SUITE
+                                .map(|(n, _)| n)
+                                .join(", ")
                         ));
                     }
-                    Some(crate::scenario::Scenario::load(&name).map_err(|e| e.to_string())?)
+                    Some(
+                        crate::damage::scenario::Scenario::load(&name)
+                            .map_err(|e| e.to_string())?,
+                    )
                 }
                 (None, Some(text)) => Some(
-                    crate::scenario::Scenario::from_json(&text, "uploaded file")
+                    crate::damage::scenario::Scenario::from_json(&text, "uploaded file")
                         .map_err(|e| e.to_string())?,
                 ),
                 (None, None) => None,

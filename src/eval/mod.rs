@@ -93,7 +93,7 @@ pub struct EvalOptions {
     pub seed_base: u64,
     pub conditions: Vec<Case>,
     /// The scenarios of the [`Case::Scenario`] cases, by name.
-    pub scenarios: Vec<crate::scenario::Scenario>,
+    pub scenarios: Vec<crate::damage::scenario::Scenario>,
     pub max_steps: usize,
     pub threads: usize,
 }
@@ -182,13 +182,7 @@ pub struct RecoveryFraction {
     pub value: Option<f64>,
 }
 
-/// Label of a checkpoint in tables: its folder name.
-pub fn model_label(dir: &Path) -> String {
-    dir.file_name()
-        .and_then(|n| n.to_str())
-        .unwrap_or("model")
-        .to_string()
-}
+pub use crate::policy::checkpoint::model_label;
 
 /// Episodes per (model, condition) cell, at most.
 pub const MAX_EPISODES: usize = 100_000;

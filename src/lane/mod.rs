@@ -10,15 +10,17 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use std::path::{Path, PathBuf};
 
+use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
 use crate::config::{DamageConfig, EnvConfig, GaitConfig};
 use crate::damage::{DamageEdit, DamageEvent, JointState, N_ACTUATORS};
-use crate::env::{Action, AntEnv, EnvError, EnvSnapshot, N_LEGS, Observation, StepOutcome};
+use crate::env::{
+    ACT_DIM, Action, AntEnv, EnvError, EnvSnapshot, N_LEGS, Observation, StepOutcome,
+};
 use crate::policy::{ActionMode, Policy};
-use crate::probe::ProbeFile;
-use crate::rollout::{BuiltinPolicy, policy_rng};
 use crate::window::ContextWindow;
+use rand::SeedableRng;
 
 #[derive(Debug, thiserror::Error)]
 pub enum LaneError {
@@ -32,14 +34,45 @@ pub enum LaneError {
     ScriptEnded { step: usize, len: usize },
 }
 
+/// Policies that need no checkpoint.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BuiltinPolicy {
+    /// Uniform in [−1, 1]⁸ from a seeded RNG.
+    Random,
+    /// All zeros: the Ant stands still.
+    Zero,
+}
+
+impl BuiltinPolicy {
+    pub fn act(self, rng: &mut impl Rng) -> Action {
+        match self {
+            BuiltinPolicy::Random => std::array::from_fn(|_| rng.random_range(-1.0..=1.0)),
+            BuiltinPolicy::Zero => [0.0; ACT_DIM],
+        }
+    }
+}
+
+/// The RNG a built-in policy acts from in the episode seeded with `seed`: a stream distinct from
+/// the env's, so the policy does not shift the env's draws.
+pub fn policy_rng(seed: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed ^ 0x9E37_79B9_7F4A_7C15)
+}
+
+/// A per-joint P(damaged) read from a policy's latent z (a fitted probe, probe.json): each
+/// step's record carries it, computed once.
+pub trait Readout: Send + Sync {
+    fn joint_damage(&self, z: &[f32]) -> Option<[f64; N_ACTUATORS]>;
+}
+
 /// Who acts in a lane.
 #[derive(Clone)]
 pub enum Actor {
-    /// A checkpoint's policy, and its probe (probe.json) when a viewer reads P(damaged).
+    /// A checkpoint's policy, and its probe's readout when a viewer shows P(damaged).
     Checkpoint {
         dir: PathBuf,
         policy: Box<Policy>,
-        probe: Option<Arc<ProbeFile>>,
+        probe: Option<Arc<dyn Readout>>,
     },
     Builtin(BuiltinPolicy),
     /// A fixed action list, step k taking action k (a replay).
@@ -61,40 +94,32 @@ impl Actor {
         }
     }
 
-    /// The checkpoint's probe (probe.json) too, if it has one: every step's record then
-    /// carries the probe's P(damaged) per joint, computed once.
-    pub fn with_probe(self) -> Result<Self, crate::probe::ProbeError> {
+    /// Every step's record also carries `readout`'s P(damaged) per joint (a checkpoint's probe).
+    pub fn with_readout(self, readout: Arc<dyn Readout>) -> Self {
         match self {
-            Actor::Checkpoint { dir, policy, .. } => {
-                let probe = if dir.join(crate::probe::PROBE_FILE).exists() {
-                    Some(Arc::new(ProbeFile::load(&dir)?))
-                } else {
-                    None
-                };
-                Ok(Actor::Checkpoint { dir, policy, probe })
-            }
-            other => Ok(other),
-        }
-    }
-
-    /// The probe this actor's records are read with, if any.
-    pub fn probe(&self) -> Option<&ProbeFile> {
-        match self {
-            Actor::Checkpoint { probe, .. } => probe.as_deref(),
-            _ => None,
+            Actor::Checkpoint { dir, policy, .. } => Actor::Checkpoint {
+                dir,
+                policy,
+                probe: Some(readout),
+            },
+            other => other,
         }
     }
 
     /// The probe's P(damaged) per joint for `z`.
     fn probe_readout(&self, z: Option<&[f32]>) -> Option<[f64; N_ACTUATORS]> {
-        let p = self.probe()?.joint_damage_probabilities(z?);
-        (p.len() == N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
+        match self {
+            Actor::Checkpoint {
+                probe: Some(probe), ..
+            } => probe.joint_damage(z?),
+            _ => None,
+        }
     }
 
     /// The checkpoint folder's name, or the built-in policy's.
     pub fn label(&self) -> String {
         match self {
-            Actor::Checkpoint { dir, .. } => crate::eval::model_label(dir),
+            Actor::Checkpoint { dir, .. } => crate::policy::checkpoint::model_label(dir),
             Actor::Builtin(p) => format!("{p:?}").to_lowercase(),
             Actor::Scripted(_) => "replay".into(),
         }

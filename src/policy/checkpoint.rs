@@ -462,3 +462,11 @@ impl Policy {
         Ok(Policy::new(meta, model.actor, device))
     }
 }
+
+/// Label of a checkpoint in tables, legends and views: its folder name.
+pub fn model_label(dir: &Path) -> String {
+    dir.file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("model")
+        .to_string()
+}

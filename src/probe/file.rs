@@ -195,3 +195,10 @@ pub fn save(file: &ProbeFile, checkpoint: &Path) -> Result<PathBuf, ProbeError> 
     write_atomic(&path, &json)?;
     Ok(path)
 }
+
+impl crate::lane::Readout for ProbeFile {
+    fn joint_damage(&self, z: &[f32]) -> Option<[f64; crate::damage::N_ACTUATORS]> {
+        let p = self.joint_damage_probabilities(z);
+        (p.len() == crate::damage::N_ACTUATORS).then(|| std::array::from_fn(|i| p[i]))
+    }
+}

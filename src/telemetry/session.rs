@@ -84,14 +84,20 @@ impl Lane {
         config: &GaitConfig,
         seed: u64,
     ) -> Result<Self, RecordError> {
-        // Its probe (probe.json) too: each step's record carries the readout the views show.
-        let actor = spec.actor.with_probe()?;
-        // Not started: done until the session's first episode resets it.
-        let core = crate::lane::Lane::unstarted(&actor, config, seed)?;
-        let probe = match &actor {
-            Actor::Checkpoint { probe, .. } => probe.clone(),
+        // Its probe (probe.json) too: the logger draws its PCA, and each step's record carries
+        // its readout, the value every view shows.
+        let probe = match spec.actor.checkpoint_dir() {
+            Some(dir) if dir.join(crate::probe::PROBE_FILE).exists() => {
+                Some(std::sync::Arc::new(crate::probe::ProbeFile::load(dir)?))
+            }
             _ => None,
         };
+        let actor = match &probe {
+            Some(p) => spec.actor.with_readout(p.clone()),
+            None => spec.actor,
+        };
+        // Not started: done until the session's first episode resets it.
+        let core = crate::lane::Lane::unstarted(&actor, config, seed)?;
         let logger = AntLogger::new(rec.clone(), &spec.root, core.env(), probe)
             .with_world_offset(spec.world_offset);
         Ok(Self {

@@ -15,6 +15,7 @@ pub mod fused;
 pub mod replay;
 pub mod run_dir;
 pub mod sac;
+pub mod update_stats;
 
 use candle_core::{Device, Tensor};
 use rand::{Rng, SeedableRng};

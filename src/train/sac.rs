@@ -6,32 +6,13 @@ use candle_core::{Device, Result, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use serde::Serialize;
 
 use super::adam::Adam;
 use super::fused::FusedSac;
 use super::replay::Batch;
+pub use super::update_stats::UpdateStats;
 use crate::policy::layers::Grad;
 use crate::policy::{PolicyInput, SacConfig, SacModel, squashed_sample};
-
-/// Losses and values of one update, CleanRL's names.
-#[derive(Debug, Clone, Copy, Default, Serialize)]
-pub struct UpdateStats {
-    #[serde(rename = "losses/qf1")]
-    pub qf1_loss: f64,
-    #[serde(rename = "losses/qf2")]
-    pub qf2_loss: f64,
-    #[serde(rename = "losses/qf1_values")]
-    pub qf1_values: f64,
-    #[serde(rename = "losses/qf2_values")]
-    pub qf2_values: f64,
-    #[serde(rename = "losses/actor_loss")]
-    pub actor_loss: f64,
-    #[serde(rename = "losses/alpha")]
-    pub alpha: f64,
-    #[serde(rename = "losses/alpha_loss")]
-    pub alpha_loss: f64,
-}
 
 /// How an update is computed: the same algorithm either way.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]

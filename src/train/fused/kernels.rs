@@ -358,7 +358,7 @@ with_avx2! {
 }
 
 with_avx2! {
-    /// target ← τ·source + (1 − τ)·target, as [`crate::train::sac::polyak_update`].
+    /// target ← τ·source + (1 − τ)·target, as sac.rs's `polyak_update` (the reference path).
     pub fn polyak(target: &mut [f32], source: &[f32], tau: f32) {
         for (d, s) in target.iter_mut().zip(source) {
             *d = tau * s + (1.0 - tau) * *d;

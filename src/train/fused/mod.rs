@@ -1,4 +1,4 @@
-//! The SAC update of [`super::sac::SacLearner`] without autograd: every forward and backward
+//! The SAC update of `SacLearner` (train/sac.rs, which picks the path) without autograd: every forward and backward
 //! pass written out over preallocated host buffers, on the same `gemm` kernels candle uses.
 //!
 //! Why: at batch 256 the reference update spends half its time outside GEMM, in candle's
@@ -21,7 +21,7 @@ use rand_distr::StandardNormal;
 
 use super::adam::{Adam, BETA1, BETA2, EPS};
 use super::replay::Batch;
-use super::sac::UpdateStats;
+use super::update_stats::UpdateStats;
 use crate::policy::layers::ParamStore;
 use crate::policy::{
     EncoderKind, LOG_STD_MAX, LOG_STD_MIN, NetConfig, SacConfig, SacModel, TANH_EPS,

@@ -16,26 +16,26 @@ use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use crate::damage::{Condition, DamageEvent, DamageEventKind, JointOverride};
+use super::{Condition, DamageEvent, DamageEventKind, JointOverride};
 
 /// The built-in out-of-distribution suite (`--suite ood`): damage the training distribution
 /// (fatigue, all joints at one scale) never shows.
 pub const OOD_SUITE: [(&str, &str); 7] = [
-    ("ood-ankle", include_str!("../scenarios/ood-ankle.json")),
-    ("ood-leg", include_str!("../scenarios/ood-leg.json")),
+    ("ood-ankle", include_str!("../../scenarios/ood-ankle.json")),
+    ("ood-leg", include_str!("../../scenarios/ood-leg.json")),
     (
         "ood-diagonal",
-        include_str!("../scenarios/ood-diagonal.json"),
+        include_str!("../../scenarios/ood-diagonal.json"),
     ),
-    ("ood-decay", include_str!("../scenarios/ood-decay.json")),
+    ("ood-decay", include_str!("../../scenarios/ood-decay.json")),
     (
         "ood-intermittent",
-        include_str!("../scenarios/ood-intermittent.json"),
+        include_str!("../../scenarios/ood-intermittent.json"),
     ),
-    ("ood-sides", include_str!("../scenarios/ood-sides.json")),
+    ("ood-sides", include_str!("../../scenarios/ood-sides.json")),
     (
         "ood-late-fault",
-        include_str!("../scenarios/ood-late-fault.json"),
+        include_str!("../../scenarios/ood-late-fault.json"),
     ),
 ];
 

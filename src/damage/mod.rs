@@ -9,7 +9,10 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
 
-use crate::config::{ConditionScales, DamageConfig};
+pub mod scenario;
+mod settings;
+
+pub use settings::{ConditionScales, DamageConfig};
 
 /// Number of actuators in the Ant.
 pub const N_ACTUATORS: usize = 8;
