@@ -163,28 +163,57 @@ fn bad_checkpoints_and_kinds_are_clear_errors() {
     assert!(e.contains("at least one"), "{e}");
 }
 
+/// The probe pipeline as a library call: probe.json beside the checkpoint, the figures, the
+/// cross-validated report; bad counts refused before anything loads.
 #[test]
 fn probe_writes_probe_json_and_figures() {
+    use gaitscope::probe::pipeline::{ProbeOptions, run};
     let tmp = tempfile::tempdir().unwrap();
     let enc = tmp.path().join("encoder");
     save_model(&enc, EncoderKind::Lstm, 3);
     let figs = tmp.path().join("figs");
-    let out = gaitscope(&[
-        "probe",
-        "--checkpoint",
-        enc.to_str().unwrap(),
-        "--episodes",
-        "3",
-        "--max-steps",
-        "80",
-        "--out",
-        figs.to_str().unwrap(),
-    ]);
+    let opts = ProbeOptions {
+        checkpoints: vec![enc.clone()],
+        baseline: None,
+        episodes: 3,
+        max_steps: 80,
+        seed: 2_000_000_000,
+        window_every: 4,
+        folds: 5,
+        save: true,
+        out: figs.clone(),
+    };
+    for (bad, reason) in [
+        (
+            ProbeOptions {
+                folds: 1,
+                ..opts.clone()
+            },
+            "--folds must be between 2",
+        ),
+        (
+            ProbeOptions {
+                folds: 10,
+                ..opts.clone()
+            },
+            "the number of episodes (9)",
+        ),
+        (
+            ProbeOptions {
+                episodes: 0,
+                ..opts.clone()
+            },
+            "at least 1",
+        ),
+    ] {
+        let e = run(&bad).unwrap_err().to_string();
+        assert!(e.contains(reason), "{e}");
+    }
     assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+        !enc.join("probe.json").exists(),
+        "refused before anything ran"
     );
+    let probed = run(&opts).unwrap();
     let file = gaitscope::probe::ProbeFile::load(&enc).unwrap();
     assert_eq!(file.joints.len(), 8);
     assert_eq!(file.pca.components.len(), 3);
@@ -200,14 +229,21 @@ fn probe_writes_probe_json_and_figures() {
         "onset_progress.png",
         "fatigue_episode.png",
         "trigger_step_by_joint.png",
+        "probe-cv.json",
+        "probe-cv.md",
+        "probe_latency.png",
     ] {
         assert!(figs.join(name).exists(), "{name}");
+        assert!(probed.written.contains(&figs.join(name)), "{name} listed");
     }
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(probed.written.contains(&enc.join("probe.json")));
+    let (label, probes) = &probed.probes[0];
+    assert_eq!(label, "encoder");
     assert!(
-        stdout.contains("condition, 3-way") && stdout.contains("ankle_1 damaged"),
-        "{stdout}"
+        probes.contains("condition, 3-way") && probes.contains("ankle_1 damaged"),
+        "{probes}"
     );
+    assert_eq!(probed.report.runs[0].episodes, 9);
 }
 
 #[test]

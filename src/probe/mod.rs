@@ -17,6 +17,7 @@ mod figures;
 mod file;
 mod linear;
 mod pca;
+pub mod pipeline;
 
 pub use collect::{ProbeStep, collect};
 pub use cv::{CvScores, LatencyPoint, MeanSd, ProbeCv, ProbeReport, episode_folds, probe_cv};
@@ -51,4 +52,6 @@ pub enum ProbeError {
     Plot(#[from] PlotError),
     #[error("cannot read {path}: {reason}")]
     Read { path: PathBuf, reason: String },
+    #[error("{0}")]
+    Options(String),
 }

@@ -1,0 +1,93 @@
+//! `gaitscope eval`.
+
+use anyhow::{Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+
+use gaitscope::{AntEnv, Condition, GaitConfig};
+
+use super::suite_help;
+
+#[derive(Args)]
+pub(crate) struct EvalArgs {
+    /// Checkpoint folders (give a baseline and encoders to get paired tests and the recovery fraction).
+    #[arg(long = "checkpoint", value_name = "DIR", required = true, num_args = 1..)]
+    checkpoints: Vec<PathBuf>,
+    #[arg(long, default_value_t = 100)]
+    episodes: usize,
+    /// Conditions to evaluate (default: all three; with --scenario or --suite: healthy, the
+    /// reference the scenarios are measured against).
+    #[arg(long, num_args = 1.., value_name = "healthy|mild|severe")]
+    conditions: Vec<Condition>,
+    /// Scenarios to evaluate as well, each its own column: a file or a built-in name (repeat
+    /// the flag for several).
+    #[arg(long, value_name = "NAME|FILE")]
+    scenario: Vec<String>,
+    /// A built-in suite of scenarios: ood (one ankle, one leg, diagonal legs, decay,
+    /// intermittent fault, sides mild/severe, a late fault; docs/scenarios.md).
+    #[arg(long, value_name = "ood", long_help = suite_help())]
+    suite: Vec<String>,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// First evaluation seed; episode i uses seed + i for every model.
+    #[arg(long, default_value_t = gaitscope::eval::EVAL_SEED_BASE)]
+    seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Folder for eval.json and the figures.
+    #[arg(long, value_name = "DIR", default_value = "eval")]
+    out: PathBuf,
+}
+
+pub(crate) fn eval_command(args: EvalArgs) -> Result<()> {
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    use gaitscope::eval::Case;
+    let scenarios = gaitscope::damage::scenario::collect(&args.scenario, &args.suite)?;
+    for (i, s) in scenarios.iter().enumerate() {
+        if scenarios[..i].iter().any(|t| t.name == s.name) {
+            bail!(
+                "two scenarios are named '{}': each needs its own name",
+                s.name
+            );
+        }
+        // Every joint and set name fits the Ant, before minutes of evaluation.
+        let mut config = GaitConfig::default();
+        config.damage.scenario = Some(s.clone());
+        AntEnv::new(config, 0)?;
+    }
+    let conditions: Vec<Condition> = match (args.conditions.is_empty(), scenarios.is_empty()) {
+        (false, _) => args.conditions,
+        (true, true) => Condition::ALL.to_vec(),
+        (true, false) => vec![Condition::Healthy],
+    };
+    let cases: Vec<Case> = conditions
+        .into_iter()
+        .map(Case::from)
+        .chain(scenarios.iter().map(|s| Case::scenario(&s.name)))
+        .collect();
+    let opts = gaitscope::eval::EvalOptions {
+        checkpoints: args.checkpoints,
+        episodes: args.episodes,
+        seed_base: args.seed,
+        conditions: cases,
+        scenarios,
+        max_steps: args.max_steps,
+        threads,
+    };
+    let report = gaitscope::eval::evaluate(&opts)?;
+    println!("{}", report.markdown());
+    for (model, secs) in &report.wall_time_s {
+        let n = opts.episodes * opts.conditions.len();
+        eprintln!(
+            "{model}: {n} episodes in {secs:.1} s ({:.1} episodes/s, {threads} threads)",
+            n as f64 / secs
+        );
+    }
+    for path in gaitscope::eval::write_outputs(&report, &args.out)? {
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,305 @@
+//! `gaitscope live`: the native panel or the web page beside the Rerun viewer.
+
+use anyhow::{Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+
+use super::{EnvArgs, fork_option};
+
+#[derive(Args)]
+pub(crate) struct LiveArgs {
+    /// Checkpoint to watch (any folder `gaitscope train` wrote).
+    #[arg(long, value_name = "DIR", default_value = "checkpoints/encoder-lstm")]
+    checkpoint: PathBuf,
+    /// A second checkpoint, side by side under the same damage (e.g. checkpoints/baseline).
+    #[arg(long, value_name = "DIR")]
+    compare: Option<PathBuf>,
+    #[arg(
+        long,
+        value_name = "healthy|mild|severe|manual",
+        default_value = "severe"
+    )]
+    condition: gaitscope::app::LiveCondition,
+    /// Seed of the first episode (each next episode uses the next seed).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Playback speed, a multiple of real time (20 env steps/s): 0.25 to 8.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// Sample actions from the policy instead of taking its mean.
+    #[arg(long)]
+    sampled: bool,
+    /// Start paused (step with the panel's Step button).
+    #[arg(long)]
+    paused: bool,
+    /// Pause after any step where one of these holds, comma-separated: trigger, trigger:JOINT,
+    /// override, termination, success, probe-flip (needs probe.json), step:N.
+    #[arg(long, value_name = "LIST")]
+    break_on: Option<String>,
+    /// Fork the main model before step K of every episode (a `fork` lane beside it), with
+    /// --fork's edits, as the panel's "Fork here" does.
+    #[arg(long, value_name = "K", requires = "fork")]
+    fork_at: Option<usize>,
+    /// The fork's damage edits, as for `rollout --fork`.
+    #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
+    fork: Option<String>,
+    /// Stream to a viewer that is already running, e.g. rerun+http://HOST:9876/proxy.
+    #[arg(long, value_name = "URL")]
+    connect: Option<String>,
+    /// Also save the session to this .rrd file.
+    #[arg(long, value_name = "FILE")]
+    save: Option<PathBuf>,
+    /// The Rerun viewer binary (default: $GAITSCOPE_RERUN, .deps/rerun/rerun, then PATH).
+    #[arg(long, value_name = "PATH")]
+    viewer: Option<PathBuf>,
+    /// Close after this many seconds and print the frame-rate / real-time report (scripts).
+    #[arg(long, value_name = "SECONDS")]
+    exit_after: Option<f64>,
+    /// Serve the session to a browser instead of opening windows: Rerun's web viewer and a
+    /// control page (no display needed; prints the URLs and an `ssh -L` line).
+    #[arg(long, conflicts_with_all = ["connect", "viewer"])]
+    web: bool,
+    /// Address the web servers listen on. Anything but loopback lets whoever reaches the
+    /// port drive the sim and watch the stream.
+    #[arg(
+        long,
+        value_name = "ADDR",
+        default_value = "127.0.0.1",
+        requires = "web"
+    )]
+    bind: std::net::IpAddr,
+    /// Port of the control page (the web viewer and its gRPC stream use the next two flags).
+    #[arg(long, value_name = "P", default_value_t = 9080, requires = "web")]
+    port: u16,
+    #[arg(long, value_name = "P", default_value_t = 9090, requires = "web")]
+    viewer_port: u16,
+    #[arg(long, value_name = "P", default_value_t = 9876, requires = "web")]
+    grpc_port: u16,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
+pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
+    use gaitscope::app::{self, viewer};
+    use gaitscope::telemetry::{self, Sink};
+    if !args.web && !cfg!(feature = "live") {
+        bail!(
+            "this gaitscope was built without the `live` feature (the control panel); rebuild \
+             with default features, use `live --web`, or `gaitscope record` to write a .rrd"
+        );
+    }
+    if let Some(secs) = args.exit_after
+        && !(secs.is_finite() && secs > 0.0)
+    {
+        bail!("--exit-after must be a positive number of seconds");
+    }
+    if let Some(path) = &args.save
+        && path.extension().and_then(|e| e.to_str()) != Some("rrd")
+    {
+        bail!("--save {} should end in .rrd", path.display());
+    }
+    let config = args.env.load()?;
+    let setup = app::LiveSetup {
+        checkpoint: args.checkpoint.clone(),
+        compare: args.compare.clone(),
+        condition: args.condition,
+        seed: args.seed,
+        speed: args.speed,
+        step_limit: args.max_steps,
+        mode: if args.sampled {
+            gaitscope::policy::ActionMode::Sampled
+        } else {
+            gaitscope::policy::ActionMode::Deterministic
+        },
+        paused: args.paused,
+        breakpoints: gaitscope::app::Breakpoint::parse_list(
+            args.break_on.as_deref().unwrap_or_default(),
+        )?,
+        fork: fork_option(args.fork_at, args.fork.as_deref())?,
+        config,
+    };
+    // Check what can be checked before any window opens: the input first, then the display.
+    setup.validate()?;
+    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
+        let requested = app::episode_config(&setup.config, setup.condition, setup.step_limit);
+        args.env
+            .note_unused(&gaitscope::lane::Actor::load(dir)?, &requested);
+    }
+    let mut checkpoints = app::discover_checkpoints(std::path::Path::new("checkpoints"));
+    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
+        if !checkpoints.contains(dir) {
+            checkpoints.push(dir.clone());
+        }
+    }
+    let recording_id = format!("gaitscope-live-{}", std::process::id());
+    // The blueprint gets a 3-D view per model shown from the start (a model added later from
+    // the panel streams too; the viewer's "+" adds a view for it).
+    let models = 1 + usize::from(args.compare.is_some());
+    let roots: Vec<String> = app::LIVE_ROOTS[..models]
+        .iter()
+        .map(|r| r.to_string())
+        .collect();
+    // The 3-D views titled by checkpoint (the lanes' roots are fixed names).
+    let labels: Vec<String> = std::iter::once(&args.checkpoint)
+        .chain(&args.compare)
+        .map(|dir| gaitscope::eval::model_label(dir))
+        .collect();
+    let titles = telemetry::view_titles(&labels, &roots);
+    let finished = if args.web {
+        live_web(&args, setup, checkpoints, &recording_id, &roots, &titles)?
+    } else {
+        viewer::require_display("gaitscope live")?;
+        let url = match &args.connect {
+            Some(url) => {
+                viewer::check_reachable(url)?;
+                url.clone()
+            }
+            None => {
+                let path = viewer::find_viewer(args.viewer.as_deref())?;
+                let url = viewer::spawn_viewer(&path)?;
+                eprintln!(
+                    "streaming to the Rerun viewer ({}) at {url}",
+                    path.display()
+                );
+                url
+            }
+        };
+        let sink = Sink::Viewer {
+            url,
+            save: args.save.clone(),
+        };
+        let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
+        let sim = app::SimHandle::spawn(rec, setup)?;
+        let panel = run_panel(&sim, checkpoints, args.exit_after);
+        let finished = sim.shutdown();
+        let stats = panel?;
+        eprintln!(
+            "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
+            stats.frames,
+            stats.seconds,
+            stats.fps(),
+            stats.mean_frame_cpu_ms
+        );
+        finished
+    };
+    // A viewer closed before the end leaves data unsent; the session's report still prints.
+    let (report, unflushed) = match finished {
+        Ok(report) => (report, None),
+        Err(app::LiveError::Unflushed { report, source }) => (*report, Some(source)),
+        Err(e) => return Err(e.into()),
+    };
+    for s in &report.speeds {
+        eprintln!(
+            "sim at {}×: {:.1} of {:.0} env steps/s ({:.0} % of real time asked for) over {:.1} s",
+            s.speed,
+            s.steps_per_s(),
+            s.target_steps_per_s,
+            100.0 * s.keeps_up(),
+            s.seconds
+        );
+    }
+    if let Some(path) = &args.save {
+        eprintln!("session saved to {}", path.display());
+    }
+    match unflushed {
+        Some(e) => Err(e.into()),
+        None => Ok(()),
+    }
+}
+
+/// `live --web`: the same session, its stream served to Rerun's web viewer and its controls
+/// to a page, until the page quits it or --exit-after passes.
+#[cfg(feature = "web")]
+pub(crate) fn live_web(
+    args: &LiveArgs,
+    setup: gaitscope::app::LiveSetup,
+    checkpoints: Vec<PathBuf>,
+    recording_id: &str,
+    roots: &[String],
+    titles: &[String],
+) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
+    use gaitscope::app::{self, web};
+    use gaitscope::telemetry::{self, Sink};
+    let options = web::WebOptions {
+        bind: args.bind,
+        port: args.port,
+        viewer_port: args.viewer_port,
+        grpc_port: args.grpc_port,
+    };
+    options.check_ports()?;
+    if !options.is_loopback() {
+        eprintln!(
+            "warning: listening on {}: anyone who can reach these ports can drive the sim and \
+             watch the stream (the default, 127.0.0.1, keeps them on this machine)",
+            options.bind
+        );
+    }
+    let sink = Sink::Serve {
+        bind: options.bind,
+        port: options.grpc_port,
+        save: args.save.clone(),
+    };
+    let (rec, _) = telemetry::open_titled(&sink, recording_id, roots, titles)?;
+    let sim = app::SimHandle::spawn(rec, setup)?;
+    let server = web::WebServer::start(options.clone(), checkpoints)?;
+    eprintln!("control page:     {}", options.control_url());
+    eprintln!("Rerun web viewer: {}", options.viewer_url());
+    eprintln!("from another machine: {}", options.ssh_tunnel());
+    eprintln!("(Quit on the page, or Ctrl-C, ends the session)");
+    let deadline = args
+        .exit_after
+        .map(|s| std::time::Instant::now() + std::time::Duration::from_secs_f64(s));
+    // Ctrl-C / SIGTERM end the session like Quit: the report and the --save file come out.
+    use anyhow::Context;
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
+        .context("installing the Ctrl-C handler")?;
+    let stats = server.serve(&sim, deadline, &stop);
+    let finished = sim.shutdown();
+    eprintln!(
+        "web: {} requests in {:.1} s ({} commands, {} refused)",
+        stats.requests, stats.seconds, stats.commands, stats.refused
+    );
+    Ok(finished)
+}
+
+#[cfg(not(feature = "web"))]
+pub(crate) fn live_web(
+    _: &LiveArgs,
+    _: gaitscope::app::LiveSetup,
+    _: Vec<PathBuf>,
+    _: &str,
+    _: &[String],
+    _: &[String],
+) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
+    bail!(
+        "this gaitscope was built without the `web` feature (Rerun's web viewer and the control page); build with the default features"
+    )
+}
+
+#[cfg(feature = "live")]
+pub(crate) fn run_panel(
+    sim: &gaitscope::app::SimHandle,
+    checkpoints: Vec<PathBuf>,
+    exit_after: Option<f64>,
+) -> Result<gaitscope::app::PanelStats> {
+    let options = gaitscope::app::panel::PanelOptions {
+        checkpoints,
+        exit_after: exit_after.map(std::time::Duration::from_secs_f64),
+    };
+    Ok(gaitscope::app::panel::run_panel(sim.link(), options)?)
+}
+
+#[cfg(not(feature = "live"))]
+pub(crate) fn run_panel(
+    _sim: &gaitscope::app::SimHandle,
+    _checkpoints: Vec<PathBuf>,
+    _exit_after: Option<f64>,
+) -> Result<gaitscope::app::PanelStats> {
+    bail!("this gaitscope was built without the `live` feature (the control panel)")
+}

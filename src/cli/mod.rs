@@ -1,0 +1,90 @@
+//! The command line, one module per command; each parses its flags and calls the library.
+
+pub mod bench;
+pub mod eval;
+pub mod import;
+pub mod live;
+pub mod probe;
+pub mod record;
+pub mod rollout;
+pub mod train;
+pub mod video;
+
+use anyhow::Result;
+use clap::Args;
+use std::path::PathBuf;
+
+use gaitscope::GaitConfig;
+
+/// Options shared by every command that builds an env.
+#[derive(Args)]
+pub(crate) struct EnvArgs {
+    /// JSON config (any subset of the fields; the rest keep their defaults).
+    #[arg(long, value_name = "FILE")]
+    pub(crate) config: Option<PathBuf>,
+    /// MJCF model to load instead of the bundled assets/ant.xml.
+    #[arg(long, value_name = "FILE")]
+    pub(crate) model: Option<PathBuf>,
+    /// Scripted damage: a scenario file, or a built-in one (ood-ankle, ood-leg, ood-diagonal,
+    /// ood-decay, ood-intermittent, ood-sides, ood-late-fault; docs/scenarios.md).
+    #[arg(long, value_name = "NAME|FILE")]
+    pub(crate) scenario: Option<String>,
+}
+
+impl EnvArgs {
+    /// A `--config`/`--model` on a checkpoint command: the checkpoint runs in the task it was
+    /// trained in (lane::Actor::world), so say which of the file's sections go unused.
+    pub(crate) fn note_unused(&self, actor: &gaitscope::lane::Actor, requested: &GaitConfig) {
+        if self.config.is_none() && self.model.is_none() {
+            return;
+        }
+        let unused = actor.unused_settings(requested);
+        if !unused.is_empty() {
+            eprintln!(
+                "note: {} runs in the task it was trained in: the {} settings of --config/--model \
+                 are not used (only the condition, scenario and step limit apply)",
+                actor.label(),
+                unused.join(", ")
+            );
+        }
+    }
+
+    pub(crate) fn load(&self) -> Result<GaitConfig> {
+        let mut config = match &self.config {
+            Some(path) => GaitConfig::from_json_file(path)?,
+            None => GaitConfig::default(),
+        };
+        if let Some(model) = &self.model {
+            config.env.model_path = Some(model.clone());
+        }
+        if let Some(scenario) = &self.scenario {
+            config.damage.scenario = Some(gaitscope::damage::scenario::Scenario::load(scenario)?);
+        }
+        Ok(config)
+    }
+}
+
+/// `--fork-at K --fork EDITS` (clap makes each require the other), parsed.
+pub(crate) fn fork_option(
+    at: Option<usize>,
+    edits: Option<&str>,
+) -> Result<Option<gaitscope::lane::Fork>> {
+    Ok(match (at, edits) {
+        (Some(at), Some(edits)) => Some(gaitscope::lane::Fork {
+            at,
+            edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
+        }),
+        _ => None,
+    })
+}
+
+/// `--suite`'s long help: each built-in scenario with its one-line description.
+pub(crate) fn suite_help() -> String {
+    let mut help = String::from(
+        "A built-in suite of scenarios, each its own column (fatigue off in all):\n\nood:",
+    );
+    for s in gaitscope::damage::scenario::Scenario::suite("ood").unwrap_or_default() {
+        help += &format!("\n  {:<18} {}", s.name, s.description);
+    }
+    help
+}

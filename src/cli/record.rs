@@ -1,0 +1,121 @@
+//! `gaitscope record` and `gaitscope view`.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use gaitscope::rollout::BuiltinPolicy;
+use gaitscope::{Condition, ConditionChoice};
+
+use super::{EnvArgs, fork_option};
+
+#[derive(Args)]
+pub(crate) struct RecordArgs {
+    /// Checkpoint to record; without one, a built-in policy acts (see --policy).
+    #[arg(long, value_name = "DIR")]
+    checkpoint: Option<PathBuf>,
+    /// A second checkpoint, side by side under identical damage and seeds.
+    #[arg(long, value_name = "DIR", requires = "checkpoint")]
+    compare: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
+    policy: BuiltinPolicy,
+    /// Damage condition (default: random per episode).
+    #[arg(long, value_name = "healthy|mild|severe")]
+    condition: Option<Condition>,
+    #[arg(long, default_value_t = 1)]
+    episodes: usize,
+    /// Episode k uses seed S + k (for every model).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// The .rrd file to write.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+    /// Fork the (first) checkpoint's episode before step K: a second lane (`fork`, drawn beside
+    /// it) from the identical state with --fork's edits.
+    #[arg(long, value_name = "K", requires_all = ["checkpoint", "fork"])]
+    fork_at: Option<usize>,
+    /// The fork's damage edits, as for `rollout --fork`.
+    #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
+    fork: Option<String>,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
+#[derive(Args)]
+pub(crate) struct ViewArgs {
+    /// The recording to open.
+    file: PathBuf,
+    /// The Rerun viewer binary (default: $GAITSCOPE_RERUN, .deps/rerun/rerun, then PATH).
+    #[arg(long, value_name = "PATH")]
+    viewer: Option<PathBuf>,
+}
+
+pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
+    use gaitscope::telemetry::{self, Actor, RecordOptions, Sink};
+    if args.episodes == 0 || args.max_steps == 0 {
+        bail!("--episodes and --max-steps must be at least 1");
+    }
+    if args.out.extension().and_then(|e| e.to_str()) != Some("rrd") {
+        bail!(
+            "--out {} should end in .rrd (the file the Rerun viewer opens)",
+            args.out.display()
+        );
+    }
+    let mut config = args.env.load()?;
+    config.env.max_episode_steps = args.max_steps;
+    if let Some(c) = args.condition {
+        config.damage.condition = ConditionChoice::Fixed(c);
+    }
+    let mut actors = Vec::new();
+    for dir in args.checkpoint.iter().chain(&args.compare) {
+        actors.push(Actor::load(dir)?);
+    }
+    if actors.is_empty() {
+        actors.push(Actor::Builtin(args.policy));
+    }
+    for actor in &actors {
+        args.env.note_unused(actor, &config);
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
+        .context("installing the Ctrl-C handler")?;
+    let opts = RecordOptions {
+        actors,
+        config,
+        episodes: args.episodes,
+        seed: args.seed,
+        sink: Sink::File(args.out.clone()),
+        fork: fork_option(args.fork_at, args.fork.as_deref())?,
+    };
+    let summary = telemetry::record(opts, &stop)?;
+    let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);
+    eprintln!(
+        "{}: {} episodes, {} steps, {:.1} MB → {} (open with `gaitscope view {}`)",
+        if summary.interrupted {
+            "interrupted, recording flushed"
+        } else {
+            "done"
+        },
+        summary.episodes,
+        summary.steps,
+        size as f64 / 1e6,
+        args.out.display(),
+        args.out.display()
+    );
+    Ok(())
+}
+
+pub(crate) fn view_command(args: ViewArgs) -> Result<()> {
+    use gaitscope::app::viewer;
+    // The file first: a wrong path is the likelier mistake, and needs no display to report.
+    viewer::check_recording(&args.file)?;
+    viewer::require_display("gaitscope view")?;
+    let path = viewer::find_viewer(args.viewer.as_deref())?;
+    viewer::view_recording(&path, &args.file)?;
+    Ok(())
+}

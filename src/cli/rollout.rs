@@ -1,0 +1,175 @@
+//! `gaitscope rollout`: built-in policies, checkpoints, replays, forks.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::io::{BufWriter, Write};
+use std::path::PathBuf;
+
+use gaitscope::rollout::{self, BuiltinPolicy};
+use gaitscope::{AntEnv, Condition, ConditionChoice};
+
+use super::{EnvArgs, fork_option};
+
+#[derive(Args)]
+pub(crate) struct RolloutArgs {
+    #[command(flatten)]
+    env: EnvArgs,
+    /// Damage condition; without it each episode draws one at random.
+    #[arg(long, value_name = "healthy|mild|severe")]
+    condition: Option<Condition>,
+    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random, conflicts_with = "init_state")]
+    policy: BuiltinPolicy,
+    #[arg(long, default_value_t = 5, conflicts_with = "init_state")]
+    episodes: usize,
+    /// Episode k is reset with seed S + k.
+    #[arg(long, default_value_t = 0, conflicts_with = "init_state")]
+    seed: u64,
+    /// Truncate episodes after this many steps (500, the evaluation's limit, as everywhere a
+    /// policy runs; training alone uses the config's 1000).
+    #[arg(long, default_value_t = 500)]
+    max_steps: usize,
+    /// One JSON object per episode instead of a text line.
+    #[arg(long, conflicts_with = "init_state")]
+    json: bool,
+    /// Replay (with --actions) or a --checkpoint's episode: the starting state,
+    /// {"qpos": [15], "qvel": [14]}.
+    #[arg(long, value_name = "FILE")]
+    init_state: Option<PathBuf>,
+    /// Replay: the actions, [[8 numbers], ...].
+    #[arg(long, value_name = "FILE", requires = "init_state")]
+    actions: Option<PathBuf>,
+    /// One JSON line per step, the state after that step (replay; or the episodes of a
+    /// --checkpoint or built-in policy, with "lane" and the commanded "action").
+    #[arg(long)]
+    jsonl: bool,
+    /// Run this checkpoint's deterministic policy instead of a built-in one.
+    #[arg(long, value_name = "DIR", conflicts_with = "actions")]
+    checkpoint: Option<PathBuf>,
+    /// Fork each episode before step K: a second lane from the identical state, with --fork's
+    /// edits applied, runs to its own end.
+    #[arg(long, value_name = "K", requires_all = ["checkpoint", "fork"])]
+    fork_at: Option<usize>,
+    /// The fork's damage edits: none, heal:all, heal:JOINT, fail:JOINT, scale:JOINT=S,
+    /// reset-fatigue:JOINT, comma-separated (JOINT by name, e.g. ankle_3).
+    #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
+    fork: Option<String>,
+}
+
+pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
+    let mut config = args.env.load()?;
+    if args.max_steps == 0 {
+        bail!("--max-steps must be at least 1");
+    }
+    config.env.max_episode_steps = args.max_steps;
+    if let Some(condition) = args.condition {
+        config.damage.condition = ConditionChoice::Fixed(condition);
+    }
+    let mut out = BufWriter::new(std::io::stdout().lock());
+
+    if args.init_state.is_some() && args.actions.is_none() && args.checkpoint.is_none() {
+        bail!("--init-state needs --actions (a replay) or --checkpoint (a policy from that state)");
+    }
+    if let (Some(init_path), Some(actions_path)) = (&args.init_state, &args.actions) {
+        let Some(condition) = args.condition else {
+            bail!(
+                "replay needs --condition healthy|mild|severe (the damage scale must be explicit)"
+            );
+        };
+        let init = rollout::read_init_state(init_path)?;
+        let actions = rollout::read_actions(actions_path)?;
+        rollout::replay(&config, &init, condition, &actions, |record| {
+            serde_json::to_writer(&mut out, record)?;
+            writeln!(out)
+        })?;
+        out.flush()?;
+        return Ok(());
+    }
+
+    if args.episodes == 0 {
+        bail!("--episodes must be at least 1");
+    }
+    if let Some(dir) = &args.checkpoint {
+        // The checkpoint runs in its own world (lane::Actor::world), with this condition and limit.
+        let actor = gaitscope::lane::Actor::load(dir)?;
+        args.env.note_unused(&actor, &config);
+        let fork = fork_option(args.fork_at, args.fork.as_deref())?;
+        let init = match &args.init_state {
+            Some(path) => {
+                let Some(condition) = args.condition else {
+                    bail!(
+                        "--init-state needs --condition healthy|mild|severe (the damage scale must be explicit)"
+                    );
+                };
+                Some((rollout::read_init_state(path)?, condition))
+            }
+            None => None,
+        };
+        // From a given state there is one episode to run (--episodes conflicts with it).
+        let episodes = if init.is_some() { 1 } else { args.episodes };
+        for episode in 0..episodes {
+            let seed = args.seed.wrapping_add(episode as u64);
+            let start = match &init {
+                Some((state, condition)) => rollout::Start::State(state, *condition),
+                None => rollout::Start::Reset,
+            };
+            let (summary, fork_summary) = rollout::run_policy_episode(
+                &actor,
+                &config,
+                episode,
+                seed,
+                start,
+                fork.as_ref(),
+                |r| step_line(&mut out, args.jsonl, r),
+            )
+            .with_context(|| format!("episode {episode} (seed {seed})"))?;
+            summary_line(&mut out, &args, &summary)?;
+            if let Some(fork) = &fork_summary {
+                if !args.json && !args.jsonl {
+                    write!(out, "  fork ")?;
+                }
+                summary_line(&mut out, &args, fork)?;
+            }
+        }
+        return Ok(());
+    }
+    let mut env = AntEnv::new(config, args.seed)?;
+    for episode in 0..args.episodes {
+        let seed = args.seed.wrapping_add(episode as u64);
+        let summary =
+            rollout::run_builtin_episode_with(&mut env, args.policy, episode, seed, |r| {
+                step_line(&mut out, args.jsonl, r)
+            })
+            .with_context(|| format!("episode {episode} (seed {seed})"))?;
+        summary_line(&mut out, &args, &summary)?;
+    }
+    Ok(())
+}
+
+/// One step's JSON line (with --jsonl).
+pub(crate) fn step_line(
+    out: &mut impl Write,
+    jsonl: bool,
+    r: &rollout::LaneRecord,
+) -> std::io::Result<()> {
+    if jsonl {
+        serde_json::to_writer(&mut *out, r)?;
+        writeln!(out)?;
+    }
+    Ok(())
+}
+
+/// An episode's summary: a JSON object (--json), a text line, or nothing (--jsonl).
+pub(crate) fn summary_line(
+    out: &mut impl Write,
+    args: &RolloutArgs,
+    summary: &rollout::EpisodeSummary,
+) -> Result<()> {
+    if args.json {
+        serde_json::to_writer(&mut *out, summary)?;
+        writeln!(out)?;
+    } else if !args.jsonl {
+        writeln!(out, "{summary}")?;
+    }
+    out.flush()?;
+    Ok(())
+}

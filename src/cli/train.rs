@@ -1,0 +1,191 @@
+//! `gaitscope train` and `gaitscope curves`.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use gaitscope::policy::EncoderKind;
+use gaitscope::train::{self, sac::UpdatePath};
+
+use super::EnvArgs;
+
+#[derive(Args)]
+pub(crate) struct TrainArgs {
+    /// Check the options and config (the env is built once), print the resolved config as
+    /// JSON and exit: nothing is trained or written (sweep launchers vet specs with it).
+    #[arg(long)]
+    check: bool,
+    /// Feature extractor: none (baseline), lstm (the paper's, default), mlp-window (ablation).
+    /// With --resume it must match the run's, and may be left out.
+    #[arg(long, value_enum)]
+    encoder: Option<EncoderKind>,
+    /// Total env steps (a resumed run stops at the same total).
+    #[arg(long, default_value_t = 500_000)]
+    steps: u64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Run folder: checkpoint, optimiser state, replay buffer, metrics.jsonl.
+    #[arg(
+        long,
+        value_name = "DIR",
+        required_unless_present = "resume",
+        conflicts_with = "resume"
+    )]
+    out: Option<PathBuf>,
+    /// Continue the run in DIR (weights, optimiser, RNGs, step counter, replay buffer).
+    #[arg(long, value_name = "DIR")]
+    resume: Option<PathBuf>,
+    #[arg(long, default_value_t = 10_000)]
+    checkpoint_every: u64,
+    /// Skip saving the replay buffer (~80 MB) with checkpoints; a resume then refills it.
+    #[arg(long)]
+    no_save_replay: bool,
+    /// Keep replay.bin in DIR instead of the run folder (e.g. under ~/.cache/gaitscope/, outside
+    /// a git work tree); the run records it, so a later --resume finds it there.
+    #[arg(long, value_name = "DIR")]
+    replay_dir: Option<PathBuf>,
+    /// A resume without its replay buffer first collects min(buffer size, steps done, N)
+    /// transitions with the current policy, without updates (at least 10000).
+    #[arg(long, value_name = "N", default_value_t = train::DEFAULT_REFILL)]
+    refill: usize,
+    /// One encoder for actor and critic (SB3's share_features_extractor).
+    #[arg(long)]
+    share_encoder: bool,
+    /// Size of the encoder's latent z (default 32, the paper's); the window length is the
+    /// config's `context.len`.
+    #[arg(long)]
+    z_dim: Option<usize>,
+    #[arg(long)]
+    batch_size: Option<usize>,
+    #[arg(long)]
+    buffer_size: Option<usize>,
+    #[arg(long)]
+    learning_starts: Option<usize>,
+    /// No progress bar (logs still go to metrics.jsonl).
+    #[arg(long)]
+    quiet: bool,
+    /// Threads per gradient update (default: every core this process may run on, so a run
+    /// pinned with `taskset -c N` uses one). The trained weights do not depend on it.
+    #[arg(long)]
+    threads: Option<usize>,
+    /// The update: fused (fast, the default) or reference (candle's autograd, for comparison).
+    #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
+    update: UpdatePath,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
+#[derive(Args)]
+pub(crate) struct CurvesArgs {
+    /// Run folders (or metrics.jsonl files); each becomes a line named after its folder.
+    #[arg(long = "run", value_name = "DIR", required = true, num_args = 1..)]
+    runs: Vec<PathBuf>,
+    /// The PNG to write.
+    #[arg(long, value_name = "FILE", default_value = "training_curves.png")]
+    out: PathBuf,
+}
+
+pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
+    let resume = args.resume.is_some();
+    let Some(out) = args.resume.clone().or(args.out.clone()) else {
+        bail!("train needs --out DIR (or --resume DIR)");
+    };
+    let encoder = match (&args.resume, args.encoder) {
+        (Some(dir), expected) => {
+            let found = gaitscope::policy::checkpoint::read_meta(dir)?.net.encoder;
+            if let Some(expected) = expected
+                && expected != found
+            {
+                bail!(
+                    "{} is a '{found}' run; --encoder {expected} does not match",
+                    dir.display()
+                );
+            }
+            found
+        }
+        (None, encoder) => encoder.unwrap_or(EncoderKind::Lstm),
+    };
+    let mut opts = train::ant_options(encoder, args.steps, args.seed, out.clone());
+    opts.env = args.env.load()?;
+    // The config's window length is the one the encoder reads and the replay buffer stores.
+    opts.net.context_len = opts.env.context.len;
+    if let Some(z) = args.z_dim {
+        opts.net.z_dim = z;
+    }
+    opts.net.share_encoder = args.share_encoder;
+    opts.checkpoint_every = args.checkpoint_every;
+    opts.save_replay = !args.no_save_replay;
+    opts.replay_dir = args.replay_dir.clone();
+    opts.refill = args.refill;
+    opts.progress_bar = !args.quiet;
+    if let Some(b) = args.batch_size {
+        opts.sac.batch_size = b;
+    }
+    if let Some(b) = args.buffer_size {
+        opts.sac.buffer_size = b;
+    }
+    if let Some(l) = args.learning_starts {
+        opts.sac.learning_starts = l;
+    }
+    opts.update = args.update;
+    opts.threads = match args.threads {
+        Some(0) => bail!("--threads must be at least 1"),
+        Some(n) => n,
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    };
+    if args.check {
+        if resume {
+            bail!("--check is for a fresh run (a resumed run keeps its own options)");
+        }
+        train::check_ant(&opts)?;
+        eprintln!(
+            "note: training episodes end after {} steps (the config's env.max_episode_steps); \
+             eval, record, live, video and rollout run policies for 500 unless told otherwise",
+            opts.env.env.max_episode_steps
+        );
+        // The task config at the top level, and the network and SAC settings the run would use.
+        let mut resolved = serde_json::to_value(&opts.env)?;
+        resolved["net"] = serde_json::to_value(&opts.net)?;
+        resolved["sac"] = serde_json::to_value(&opts.sac)?;
+        println!("{resolved}");
+        return Ok(());
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
+        .context("installing the Ctrl-C handler")?;
+    let summary = train::train_ant(opts, resume, stop)?;
+    let how = match (summary.interrupted, summary.saved) {
+        (false, _) => "done",
+        (true, true) => "interrupted; checkpoint saved",
+        (true, false) => "interrupted before a new checkpoint; the last one stands",
+    };
+    eprintln!(
+        "{how}: {} steps, {} episodes, {:.0} s, {:.1} steps/s → {}",
+        summary.steps_done,
+        summary.episodes_done,
+        summary.wall_time_s,
+        summary.steps_per_s,
+        out.display()
+    );
+    Ok(())
+}
+
+/// `gaitscope curves`.
+pub(crate) fn curves_command(args: CurvesArgs) -> Result<()> {
+    use gaitscope::train::curves::{RunMetrics, figure};
+    let mut runs = Vec::new();
+    for run in &args.runs {
+        let dir = if run.is_dir() {
+            run.as_path()
+        } else {
+            run.parent().unwrap_or(run)
+        };
+        runs.push((gaitscope::eval::model_label(dir), RunMetrics::read(run)?));
+    }
+    figure(&runs, &args.out)?;
+    eprintln!("wrote {}", args.out.display());
+    Ok(())
+}
