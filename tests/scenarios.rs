@@ -323,3 +323,49 @@ fn eval_runs_the_ood_suite_end_to_end() {
     assert!(cases.contains("healthy") && cases.contains("ood-diagonal") && cases.len() == 8);
     assert_eq!(report["comparisons"].as_array().unwrap().len(), 8);
 }
+
+/// eval's cases and scenario checks are library calls: the case list, and scenarios refused
+/// before any episode when two share a name or one names a joint the model does not have.
+#[test]
+fn eval_checks_its_scenarios_before_any_episode() {
+    use gaitscope::damage::Condition;
+    use gaitscope::eval::{Case, EvalOptions, cases, evaluate};
+    let ankle = Scenario::load("ood-ankle").unwrap();
+    assert_eq!(
+        cases(&[], &[]),
+        Condition::ALL.map(Case::from).to_vec(),
+        "all three conditions by default"
+    );
+    assert_eq!(
+        cases(&[], std::slice::from_ref(&ankle)),
+        vec![Case::from(Condition::Healthy), Case::scenario("ood-ankle")]
+    );
+    assert_eq!(
+        cases(&[Condition::Mild], std::slice::from_ref(&ankle)),
+        vec![Case::from(Condition::Mild), Case::scenario("ood-ankle")]
+    );
+    let knee = Scenario::from_json(
+        r#"{"name": "knee", "fatigue": false, "edits": [{"step": 0, "joint": "knee_9", "scale": 0.1}]}"#,
+        "test",
+    )
+    .unwrap();
+    for (scenarios, message) in [
+        (
+            vec![ankle.clone(), ankle.clone()],
+            "two scenarios are named 'ood-ankle'",
+        ),
+        (vec![knee], "knee_9"),
+    ] {
+        let opts = EvalOptions {
+            checkpoints: vec![lstm()],
+            episodes: 1,
+            seed_base: 0,
+            conditions: cases(&[], &scenarios),
+            scenarios,
+            max_steps: 5,
+            threads: 1,
+        };
+        let err = evaluate(&opts).unwrap_err().to_string();
+        assert!(err.contains(message), "{err}");
+    }
+}

@@ -1,10 +1,10 @@
 //! `gaitscope eval`.
 
-use anyhow::{Result, bail};
+use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
 
-use gaitscope::{AntEnv, Condition, GaitConfig};
+use gaitscope::Condition;
 
 use super::suite_help;
 
@@ -44,30 +44,8 @@ pub(crate) fn eval_command(args: EvalArgs) -> Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    use gaitscope::eval::Case;
     let scenarios = gaitscope::damage::scenario::collect(&args.scenario, &args.suite)?;
-    for (i, s) in scenarios.iter().enumerate() {
-        if scenarios[..i].iter().any(|t| t.name == s.name) {
-            bail!(
-                "two scenarios are named '{}': each needs its own name",
-                s.name
-            );
-        }
-        // Every joint and set name fits the Ant, before minutes of evaluation.
-        let mut config = GaitConfig::default();
-        config.damage.scenario = Some(s.clone());
-        AntEnv::new(config, 0)?;
-    }
-    let conditions: Vec<Condition> = match (args.conditions.is_empty(), scenarios.is_empty()) {
-        (false, _) => args.conditions,
-        (true, true) => Condition::ALL.to_vec(),
-        (true, false) => vec![Condition::Healthy],
-    };
-    let cases: Vec<Case> = conditions
-        .into_iter()
-        .map(Case::from)
-        .chain(scenarios.iter().map(|s| Case::scenario(&s.name)))
-        .collect();
+    let cases = gaitscope::eval::cases(&args.conditions, &scenarios);
     let opts = gaitscope::eval::EvalOptions {
         checkpoints: args.checkpoints,
         episodes: args.episodes,

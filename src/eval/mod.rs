@@ -62,6 +62,44 @@ impl From<Condition> for Case {
     }
 }
 
+/// The cases to evaluate: the conditions asked for (all three when none are asked for and no
+/// scenario is; healthy alone beside scenarios), then each scenario.
+pub fn cases(
+    conditions: &[Condition],
+    scenarios: &[crate::damage::scenario::Scenario],
+) -> Vec<Case> {
+    let conditions: &[Condition] = match (conditions.is_empty(), scenarios.is_empty()) {
+        (false, _) => conditions,
+        (true, true) => &Condition::ALL,
+        (true, false) => &[Condition::Healthy],
+    };
+    conditions
+        .iter()
+        .map(|&c| Case::from(c))
+        .chain(scenarios.iter().map(|s| Case::scenario(&s.name)))
+        .collect()
+}
+
+/// Scenarios are told apart by name, and every joint and set they name must exist in each
+/// model's world: checked before minutes of evaluation.
+fn check_scenarios(opts: &EvalOptions, policies: &[Policy]) -> Result<(), EvalError> {
+    for (i, s) in opts.scenarios.iter().enumerate() {
+        if opts.scenarios[..i].iter().any(|t| t.name == s.name) {
+            return Err(EvalError::Options(format!(
+                "two scenarios are named '{}': each needs its own name",
+                s.name
+            )));
+        }
+        for policy in policies {
+            let mut requested = GaitConfig::default();
+            requested.damage.scenario = Some(s.clone());
+            let world = crate::lane::checkpoint_world(&policy.meta.env, &requested);
+            crate::env::AntEnv::new(world, 0)?;
+        }
+    }
+    Ok(())
+}
+
 /// Evaluation seeds start here: training seeds are small integers and streams derived from them.
 pub const EVAL_SEED_BASE: u64 = 1_000_000_000;
 /// Success is also reported within these step budgets (the paper's).
@@ -213,6 +251,13 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         .num_threads(opts.threads.max(1))
         .build()
         .map_err(|e| EvalError::Options(format!("thread pool: {e}")))?;
+    // Every checkpoint loads, and every scenario fits every model, before any episode runs.
+    let policies = opts
+        .checkpoints
+        .iter()
+        .map(|dir| Policy::load(dir, None))
+        .collect::<Result<Vec<_>, _>>()?;
+    check_scenarios(opts, &policies)?;
     let mut labels = Vec::new();
     let mut runs: Vec<(String, u64, PathBuf)> = Vec::new();
     let mut episodes = Vec::new();
@@ -222,8 +267,7 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         (opts.checkpoints.len() * opts.conditions.len() * seeds.len()) as u64,
         "eval episodes",
     );
-    for dir in &opts.checkpoints {
-        let policy = Policy::load(dir, None)?;
+    for (dir, policy) in opts.checkpoints.iter().zip(policies) {
         let actor = crate::lane::Actor::from_policy(dir, policy.clone());
         let mut label = model_label(dir);
         while labels.contains(&label) {
