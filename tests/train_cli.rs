@@ -302,3 +302,160 @@ fn train_check_vets_options_and_config_and_writes_nothing() {
     assert!(stderr(&done).contains("z size"), "{}", stderr(&done));
     assert!(!out.exists(), "--check writes nothing");
 }
+
+/// `train --aux dynamics`: a short run and its resume, the heads saved with every checkpoint
+/// and tied to it by CRC, `losses/aux` logged, the checkpoint read by every command that acts,
+/// and the flags' mistakes refused.
+#[test]
+fn a_run_with_the_dynamics_loss_saves_resumes_and_is_read_everywhere() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("lstm-aux");
+    let d = dir.to_str().unwrap();
+    let out = gaitscope(
+        &[
+            &[
+                "train",
+                "--encoder",
+                "lstm",
+                "--aux",
+                "dynamics",
+                "--aux-weight",
+                "0.5",
+            ][..],
+            // Losses are logged every 1,000 steps.
+            &["--steps", "1000", "--seed", "3", "--quiet", "--out", d],
+            &SMALL,
+        ]
+        .concat(),
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(steps_done(&dir), 1000);
+    let meta: Value =
+        serde_json::from_slice(&std::fs::read(dir.join("checkpoint.json")).unwrap()).unwrap();
+    assert_eq!(meta["sac"]["aux"]["kind"], "dynamics");
+    assert_eq!(meta["sac"]["aux"]["weight"], 0.5);
+    assert!(dir.join("aux.safetensors").exists());
+    let state: Value =
+        serde_json::from_slice(&std::fs::read(dir.join("train_state.json")).unwrap()).unwrap();
+    assert!(state["aux"]["norm"]["count"].as_f64().unwrap() > 900.0);
+    let metrics = std::fs::read_to_string(dir.join("metrics.jsonl")).unwrap();
+    assert!(metrics.contains("\"losses/aux\"") && metrics.contains("\"losses/aux_critic\""));
+
+    // The flags cannot change on resume; the resume goes on with the heads.
+    let e = stderr(&gaitscope(&["train", "--resume", d, "--aux", "none"]));
+    assert!(e.contains("cannot change on resume"), "{e}");
+    let out = gaitscope(&["train", "--resume", d, "--steps", "1150", "--quiet"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(steps_done(&dir), 1150);
+
+    // Every command that acts reads the checkpoint (the heads are not needed to act).
+    let policy = Policy::load(&dir, None).unwrap();
+    assert_eq!(policy.net().encoder, EncoderKind::Lstm);
+    for args in [
+        vec![
+            "rollout",
+            "--checkpoint",
+            d,
+            "--episodes",
+            "1",
+            "--max-steps",
+            "20",
+        ],
+        vec![
+            "eval",
+            "--checkpoint",
+            d,
+            "--episodes",
+            "1",
+            "--max-steps",
+            "20",
+            "--out",
+        ],
+    ] {
+        let mut args = args;
+        let eval_out = tmp.path().join("eval");
+        if args[0] == "eval" {
+            args.push(eval_out.to_str().unwrap());
+        }
+        let out = gaitscope(&args);
+        assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+    }
+
+    // Heads that do not belong to the checkpoint are refused, not trained on.
+    let heads = dir.join("aux.safetensors");
+    let mut bytes = std::fs::read(&heads).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0x40;
+    std::fs::write(&heads, &bytes).unwrap();
+    let e = stderr(&gaitscope(&[
+        "train", "--resume", d, "--steps", "1300", "--quiet",
+    ]));
+    assert!(e.contains("aux.safetensors") && e.contains("CRC-32"), "{e}");
+    std::fs::remove_file(&heads).unwrap();
+    let e = stderr(&gaitscope(&[
+        "train", "--resume", d, "--steps", "1300", "--quiet",
+    ]));
+    assert!(
+        e.contains("aux.safetensors") && e.contains("cannot read"),
+        "{e}"
+    );
+    assert_eq!(steps_done(&dir), 1150, "nothing trained");
+}
+
+#[test]
+fn aux_flags_are_checked() {
+    let check = |extra: &[&str]| {
+        let out = gaitscope(
+            &[
+                &["train", "--check", "--out", "/tmp/never-written"][..],
+                extra,
+            ]
+            .concat(),
+        );
+        (
+            out.status.success(),
+            stderr(&out),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+        )
+    };
+    let (ok, e, printed) = check(&["--aux", "dynamics"]);
+    assert!(ok, "{e}");
+    let resolved: Value = serde_json::from_str(printed.trim()).unwrap();
+    assert_eq!(
+        resolved["sac"]["aux"],
+        serde_json::json!({"kind": "dynamics", "weight": 1.0})
+    );
+    // Without --aux the resolved config is today's: no aux section at all.
+    let (_, _, printed) = check(&[]);
+    assert!(!printed.contains("aux"), "{printed}");
+    for (extra, message) in [
+        (
+            vec!["--aux", "dynamics", "--encoder", "none"],
+            "not --encoder none",
+        ),
+        (
+            vec!["--aux", "contrastive"],
+            "possible values: none, dynamics",
+        ),
+        (
+            vec!["--aux-weight", "2"],
+            "--aux-weight needs --aux dynamics",
+        ),
+        (
+            vec!["--aux", "dynamics", "--aux-weight=-1"],
+            "must be a number in (0, 1000]",
+        ),
+        (
+            vec!["--aux", "dynamics", "--aux-weight", "NaN"],
+            "must be a number in (0, 1000]",
+        ),
+        (
+            vec!["--aux", "dynamics", "--update", "fused"],
+            "--aux trains on --update reference",
+        ),
+    ] {
+        let (ok, e, _) = check(&extra);
+        assert!(!ok && e.contains(message), "{extra:?}: {e}");
+    }
+    assert!(!Path::new("/tmp/never-written").exists());
+}

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use gaitscope::policy::EncoderKind;
+use gaitscope::policy::{AuxKind, EncoderKind};
 use gaitscope::train::{self, sac::UpdatePath};
 
 use super::EnvArgs;
@@ -70,9 +70,18 @@ pub(crate) struct TrainArgs {
     /// pinned with `taskset -c N` uses one). The trained weights do not depend on it.
     #[arg(long)]
     threads: Option<usize>,
-    /// The update: fused (fast, the default) or reference (candle's autograd, for comparison).
-    #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
-    update: UpdatePath,
+    /// The update: fused (fast, the default) or reference (candle's autograd, for comparison;
+    /// what a run with --aux trains on).
+    #[arg(long, value_enum)]
+    update: Option<UpdatePath>,
+    /// A self-supervised auxiliary loss for the encoders: dynamics (a head predicts the
+    /// normalised change of the observation from [z, o_t, a_t]); none is plain SAC. No damage
+    /// label enters it. With --resume it must match the run's, and may be left out.
+    #[arg(long, value_enum)]
+    aux: Option<AuxKind>,
+    /// Weight of the auxiliary loss in each network's loss (default 1).
+    #[arg(long, value_name = "W")]
+    aux_weight: Option<f64>,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -129,7 +138,33 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
     if let Some(l) = args.learning_starts {
         opts.sac.learning_starts = l;
     }
-    opts.update = args.update;
+    if let Some(dir) = &args.resume {
+        let run = gaitscope::policy::checkpoint::read_meta(dir)?.sac.aux;
+        if args.aux.is_some_and(|kind| kind != run.kind)
+            || args.aux_weight.is_some_and(|w| w != run.weight)
+        {
+            bail!(
+                "{} trains with --aux {:?} (weight {}); --aux/--aux-weight cannot change on resume",
+                dir.display(),
+                run.kind,
+                run.weight
+            );
+        }
+    } else {
+        if let Some(kind) = args.aux {
+            opts.sac.aux.kind = kind;
+        }
+        if let Some(w) = args.aux_weight {
+            if opts.sac.aux.is_off() {
+                bail!("--aux-weight needs --aux dynamics");
+            }
+            opts.sac.aux.weight = w;
+        }
+    }
+    if args.update == Some(UpdatePath::Fused) && !opts.sac.aux.is_off() {
+        bail!("--aux trains on --update reference: the fused update has no auxiliary loss yet");
+    }
+    opts.update = args.update.unwrap_or(UpdatePath::Fused);
     opts.threads = match args.threads {
         Some(0) => bail!("--threads must be at least 1"),
         Some(n) => n,

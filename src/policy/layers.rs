@@ -61,7 +61,7 @@ impl ParamStore {
         Ok(var)
     }
 
-    /// Moves every parameter of `other` into this store, names prefixed.
+    /// Moves every parameter of `other` to the end of this store (names as they are).
     pub fn extend(&mut self, other: ParamStore) {
         self.params.extend(other.params);
     }

@@ -122,6 +122,44 @@ pub struct SacConfig {
     pub initial_alpha: f64,
     /// Target entropy; `None` means −act_dim (−8 for the Ant).
     pub target_entropy: Option<f64>,
+    /// A self-supervised auxiliary loss for the encoders (`--aux`); absent from
+    /// checkpoint.json when off, so runs without it are written as before.
+    #[serde(skip_serializing_if = "AuxConfig::is_off")]
+    pub aux: AuxConfig,
+}
+
+/// Which auxiliary loss the encoders get (train/aux.rs), and its weight.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AuxConfig {
+    pub kind: AuxKind,
+    pub weight: f64,
+}
+
+impl Default for AuxConfig {
+    fn default() -> Self {
+        Self {
+            kind: AuxKind::None,
+            weight: 1.0,
+        }
+    }
+}
+
+impl AuxConfig {
+    pub fn is_off(&self) -> bool {
+        self.kind == AuxKind::None
+    }
+}
+
+/// The auxiliary losses there are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum AuxKind {
+    /// None: today's SAC.
+    #[default]
+    None,
+    /// Predict the normalised change of the observation from [z, o_t, a_t].
+    Dynamics,
 }
 
 impl Default for SacConfig {
@@ -135,6 +173,7 @@ impl Default for SacConfig {
             learning_starts: 100,
             initial_alpha: 1.0,
             target_entropy: None,
+            aux: AuxConfig::default(),
         }
     }
 }

@@ -620,6 +620,8 @@ fn sac_config(archive: &Archive, alpha: f64) -> SacConfig {
         learning_starts: count("learning_starts").unwrap_or(default.learning_starts),
         initial_alpha: alpha,
         target_entropy: num("target_entropy"),
+        // SB3 trains no auxiliary loss.
+        aux: default.aux,
     }
 }
 

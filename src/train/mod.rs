@@ -10,6 +10,7 @@
 //! hundred fresh transitions wrecked two of our runs.
 
 pub mod adam;
+pub mod aux;
 pub mod curves;
 pub mod fused;
 pub mod replay;
@@ -178,6 +179,12 @@ struct TrainState {
     optimizer_crc32: Option<u32>,
     #[serde(default)]
     replay_crc32: Option<u32>,
+    /// Ties it to its auxiliary heads (`aux.safetensors`; runs with `--aux` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    aux_crc32: Option<u32>,
+    /// The auxiliary heads' normalisation and Adam step counts (runs with `--aux` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    aux: Option<aux::AuxState>,
     /// The `--replay-dir` the buffer was saved in (absent: the run folder).
     #[serde(default)]
     replay_dir: Option<PathBuf>,
@@ -298,7 +305,8 @@ pub fn train_with_save_hook(
             return Err(already_a_run(&opts.out));
         }
         let model = SacModel::new(opts.net.clone(), opts.sac.initial_alpha, opts.seed, &device)?;
-        let learner = SacLearner::new(model, opts.sac.clone(), device.clone());
+        let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
+        learner.init_aux(opts.seed)?;
         let state = TrainState {
             steps_done: 0,
             episodes_done: 0,
@@ -310,6 +318,8 @@ pub fn train_with_save_hook(
             model_crc32: 0,
             optimizer_crc32: None,
             replay_crc32: None,
+            aux_crc32: None,
+            aux: None,
             replay_dir: (replay_dir != opts.out).then_some(replay_dir),
             resumes: Vec::new(),
         };
@@ -317,7 +327,13 @@ pub fn train_with_save_hook(
         truncate_metrics(&opts.out, 0)?;
         (run, learner, state, replay, None)
     };
-    learner.set_update_path(opts.update)?;
+    // The fused update has no auxiliary loss yet: a run with one trains on the reference path
+    // (the same algorithm; docs/training.md).
+    learner.set_update_path(if learner.aux.is_some() {
+        UpdatePath::Reference
+    } else {
+        opts.update
+    })?;
     learner.set_threads(opts.threads)?;
     let net = opts.net.clone();
     let mut metrics = MetricsLog::open(&opts.out)?;
@@ -554,6 +570,7 @@ fn collect_step(
         learner.explore(&obs32, window_arg, &noise)?
     };
     let mut step = task.step(&action)?;
+    learner.observe(&ep.obs, &step.obs, step.terminated);
     replay.push(Transition {
         obs: &ep.obs,
         action: &action,
@@ -654,7 +671,28 @@ fn validate_options(opts: &TrainOptions) -> Result<(), TrainError> {
             opts.refill
         ));
     }
+    if !sac.aux.is_off() {
+        if !net.encoder.uses_window() {
+            return bad(format!(
+                "--aux {} needs an encoder to shape (--encoder lstm or mlp-window), not --encoder none",
+                aux_name(sac.aux.kind)
+            ));
+        }
+        if !(sac.aux.weight.is_finite() && sac.aux.weight > 0.0 && sac.aux.weight <= 1e3) {
+            return bad(format!(
+                "--aux-weight {} must be a number in (0, 1000]",
+                sac.aux.weight
+            ));
+        }
+    }
     Ok(())
+}
+
+fn aux_name(kind: crate::policy::AuxKind) -> &'static str {
+    match kind {
+        crate::policy::AuxKind::None => "none",
+        crate::policy::AuxKind::Dynamics => "dynamics",
+    }
 }
 
 /// Saves one generation (weights, checkpoint.json, optimiser, train state, replay buffer) as a
@@ -697,6 +735,18 @@ fn save_run(
             return Err(diverged(format!("the {group} optimiser's state")));
         }
     }
+    let aux_bytes = match &learner.aux {
+        Some(aux) => {
+            if !aux.is_finite()? {
+                return Err(diverged("the auxiliary heads (aux.safetensors)".into()));
+            }
+            let tensors = aux.tensors()?;
+            Some(safetensors_bytes(
+                tensors.iter().map(|(n, t)| (n.as_str(), t)),
+            )?)
+        }
+        None => None,
+    };
     let (model_bytes, meta) = learner.model.checkpoint_bytes(&record)?;
     let meta_json = checkpoint::meta_json(&opts.out, &meta)?;
     let tensors = optimizer_tensors(&optimizers)?;
@@ -722,6 +772,8 @@ fn save_run(
     state.model_crc32 = meta.model_crc32;
     state.optimizer_crc32 = Some(crc32fast::hash(&optimizer_bytes));
     state.replay_crc32 = replay_bytes.as_deref().map(crc32fast::hash);
+    state.aux_crc32 = aux_bytes.as_deref().map(crc32fast::hash);
+    state.aux = learner.aux.as_ref().map(aux::AuxHeads::state);
     let path = opts.out.join(STATE_FILE);
     let state_json = serde_json::to_vec_pretty(state).map_err(|e| TrainError::State {
         path: path.clone(),
@@ -731,6 +783,9 @@ fn save_run(
         (Place::Run, checkpoint::MODEL_FILE, &model_bytes),
         (Place::Run, OPTIMIZER_FILE, &optimizer_bytes),
     ];
+    if let Some(bytes) = &aux_bytes {
+        files.push((Place::Run, aux::AUX_FILE, bytes));
+    }
     if let Some(bytes) = &replay_bytes {
         files.push((Place::Replay, REPLAY_FILE, bytes));
     }
@@ -981,7 +1036,49 @@ fn load_run(
                 reason,
             })?;
     }
+    if !meta.sac.aux.is_off() {
+        load_aux(dir, &mut learner, &state, meta.seed, device)?;
+    }
     Ok((learner, state, meta))
+}
+
+/// The auxiliary heads of a run trained with `--aux`, checked against its train state.
+fn load_aux(
+    dir: &Path,
+    learner: &mut SacLearner,
+    state: &TrainState,
+    seed: u64,
+    device: &Device,
+) -> Result<(), TrainError> {
+    let path = dir.join(aux::AUX_FILE);
+    let bad = |reason: String| TrainError::State {
+        path: path.clone(),
+        reason,
+    };
+    let bytes = std::fs::read(&path)
+        .map_err(|e| bad(format!("cannot read ({e}); the run trains with --aux")))?;
+    let found = crc32fast::hash(&bytes);
+    if state.aux_crc32 != Some(found) {
+        return Err(bad(format!(
+            "CRC-32 {found:08x} does not match train_state.json's {}: these heads belong to another run or save",
+            state
+                .aux_crc32
+                .map_or("(none)".into(), |c| format!("{c:08x}"))
+        )));
+    }
+    let tensors = candle_core::safetensors::load_buffer(&bytes, device)
+        .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    let Some(saved) = &state.aux else {
+        return Err(TrainError::State {
+            path: dir.join(STATE_FILE),
+            reason: "has no auxiliary-loss state, but the run trains with --aux".into(),
+        });
+    };
+    learner.init_aux(seed)?;
+    if let Some(heads) = &mut learner.aux {
+        heads.restore(&tensors, saved).map_err(bad)?;
+    }
+    Ok(())
 }
 
 /// Drops metric lines logged after `steps_done` (work lost since the last checkpoint), and says

@@ -8,11 +8,12 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 use super::adam::Adam;
+use super::aux::AuxHeads;
 use super::fused::FusedSac;
 use super::replay::Batch;
 pub use super::update_stats::UpdateStats;
 use crate::policy::layers::Grad;
-use crate::policy::{PolicyInput, SacConfig, SacModel, squashed_sample};
+use crate::policy::{AuxKind, PolicyInput, SacConfig, SacModel, squashed_sample};
 
 /// How an update is computed: the same algorithm either way.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
@@ -33,6 +34,8 @@ pub struct SacLearner {
     pub actor_opt: Adam,
     pub critic_opt: Adam,
     pub alpha_opt: Adam,
+    /// The encoders' auxiliary heads (`--aux`), trained with the actor and critic losses.
+    pub aux: Option<AuxHeads>,
     device: Device,
     fused: Option<FusedSac>,
 }
@@ -48,13 +51,49 @@ impl SacLearner {
             model,
             config,
             target_entropy,
+            aux: None,
             device,
             fused: None,
         }
     }
 
+    /// Fresh auxiliary heads as `config.aux` asks (none when it is off), drawn from `seed`.
+    pub fn init_aux(&mut self, seed: u64) -> Result<()> {
+        self.aux = match self.config.aux.kind {
+            AuxKind::None => None,
+            AuxKind::Dynamics => {
+                if !self.model.net.encoder.uses_window() {
+                    candle_core::bail!("--aux dynamics needs an encoder (it shapes z)");
+                }
+                Some(AuxHeads::new(
+                    self.config.aux,
+                    &self.model.net,
+                    seed,
+                    self.config.learning_rate,
+                    &self.device,
+                )?)
+            }
+        };
+        Ok(())
+    }
+
+    /// A transition as it enters the replay buffer: the auxiliary loss's normalisation takes
+    /// its change of observation (terminal transitions have no next state to predict).
+    pub fn observe(&mut self, obs: &[f64], next_obs: &[f64], terminated: bool) {
+        if let Some(aux) = &mut self.aux
+            && !terminated
+        {
+            aux.norm.observe(obs, next_obs);
+        }
+    }
+
     /// Switches to `path`, carrying the current weights and optimiser state across.
     pub fn set_update_path(&mut self, path: UpdatePath) -> Result<()> {
+        if path == UpdatePath::Fused && self.aux.is_some() {
+            candle_core::bail!(
+                "the fused update has no auxiliary loss yet: --aux runs on --update reference"
+            );
+        }
         self.sync_model()?;
         self.fused = match path {
             UpdatePath::Reference => None,
@@ -209,10 +248,26 @@ impl SacLearner {
         let [q1, q2] = model.critic.q_values(&features, &actions, Grad::Track)?;
         let qf1_loss = (&q1 - &target_q)?.sqr()?.mean_all()?;
         let qf2_loss = (&q2 - &target_q)?.sqr()?.mean_all()?;
-        let critic_loss = ((&qf1_loss + &qf2_loss)? * 0.5)?;
+        let mut critic_loss = ((&qf1_loss + &qf2_loss)? * 0.5)?;
+        // The critic's auxiliary head reads z, the first z_dim features of its own encoder.
+        let mut aux_critic_loss = None;
+        if let Some(aux) = &self.aux
+            && let Some(head) = &aux.critic
+        {
+            let z = features.narrow(1, 0, model.net.z_dim)?;
+            let (loss, value) = aux.loss(head, &z, batch, &self.device)?;
+            critic_loss = (critic_loss + loss)?;
+            aux_critic_loss = Some(value);
+        }
         let critic_grads = critic_loss.backward()?;
         self.critic_opt.step(&critic_grads)?;
         gradients.extend(named_gradients(&self.model.critic_params, &critic_grads)?);
+        if let Some(aux) = &mut self.aux
+            && let Some(opt) = &mut aux.critic_opt
+        {
+            opt.step(&critic_grads)?;
+            gradients.extend(named_gradients(&aux.params, &critic_grads)?);
+        }
 
         // --- actor -------------------------------------------------------------------------------
         // The critic (just updated) is frozen: gradients reach the action, not its weights.
@@ -226,9 +281,20 @@ impl SacLearner {
             .q_values(&features_pi, &action_pi, Grad::Frozen)?;
         let min_q_pi = q1_pi.minimum(&q2_pi)?;
         let actor_loss = ((log_prob_pi * alpha)? - min_q_pi)?.mean_all()?;
-        let actor_grads = actor_loss.backward()?;
+        let (mut actor_total, mut aux_loss) = (actor_loss.clone(), None);
+        if let (Some(aux), Some(z)) = (&self.aux, &actor_out.z) {
+            let (loss, value) = aux.loss(&aux.actor, z, batch, &self.device)?;
+            actor_total = (actor_total + loss)?;
+            aux_loss = Some(value);
+        }
+        let actor_grads = actor_total.backward()?;
         self.actor_opt.step(&actor_grads)?;
         gradients.extend(named_gradients(&self.model.actor_params, &actor_grads)?);
+        if let Some(aux) = &mut self.aux {
+            // Only the actor's head: the critic's took no part in this loss.
+            aux.actor_opt.step(&actor_grads)?;
+            gradients.extend(named_gradients(&aux.params, &actor_grads)?);
+        }
 
         // --- target critic -------------------------------------------------------------------
         polyak_update(self.model.target_pairs(), self.config.tau)?;
@@ -242,6 +308,8 @@ impl SacLearner {
             actor_loss: scalar(&actor_loss)?,
             alpha,
             alpha_loss: scalar(&alpha_loss)?,
+            aux_loss,
+            aux_critic_loss,
         };
         Ok((stats, gradients))
     }

@@ -20,4 +20,10 @@ pub struct UpdateStats {
     pub alpha: f64,
     #[serde(rename = "losses/alpha_loss")]
     pub alpha_loss: f64,
+    /// The actor's auxiliary loss (unweighted), with `--aux`.
+    #[serde(rename = "losses/aux", skip_serializing_if = "Option::is_none")]
+    pub aux_loss: Option<f64>,
+    /// The critic's auxiliary loss (unweighted), with `--aux` and a critic encoder of its own.
+    #[serde(rename = "losses/aux_critic", skip_serializing_if = "Option::is_none")]
+    pub aux_critic_loss: Option<f64>,
 }

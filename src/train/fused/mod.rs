@@ -937,6 +937,7 @@ impl FusedSac {
             actor_loss: actor_loss as f64,
             alpha,
             alpha_loss: alpha_loss as f64,
+            ..UpdateStats::default()
         })
     }
 
