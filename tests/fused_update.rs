@@ -98,6 +98,16 @@ fn check_stats(what: &str, fused: &UpdateStats, reference: &UpdateStats) {
         ("actor_loss", fused.actor_loss, reference.actor_loss),
         ("alpha", fused.alpha, reference.alpha),
         ("alpha_loss", fused.alpha_loss, reference.alpha_loss),
+        (
+            "aux",
+            fused.aux_loss.unwrap_or(0.0),
+            reference.aux_loss.unwrap_or(0.0),
+        ),
+        (
+            "aux_critic",
+            fused.aux_critic_loss.unwrap_or(0.0),
+            reference.aux_critic_loss.unwrap_or(0.0),
+        ),
     ] {
         let err = (a - b).abs() / b.abs().max(1e-6);
         assert!(
@@ -156,6 +166,17 @@ fn compare_one_update(
         assert!(err <= TOL, "{what}: updated {name} off by {err:e}");
         weights_max = weights_max.max(max_rel_err(&a, &b));
     }
+    if let (Some(a), Some(b)) = (&fused.aux, &reference.aux) {
+        // The auxiliary heads too, and the normalisation both read.
+        assert_eq!(a.norm, b.norm);
+        for ((name, a), (_, b)) in a.params().zip(b.params()) {
+            let a = a.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let b = b.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let err = rel_err(&a, &b);
+            assert!(err <= TOL, "{what}: updated {name} off by {err:e}");
+            weights_max = weights_max.max(max_rel_err(&a, &b));
+        }
+    }
     eprintln!("{what}: updated weights element-wise within {weights_max:.1e}");
 }
 
@@ -174,6 +195,23 @@ fn copy_learner(from: &SacLearner, to: &mut SacLearner) {
             .map(|(m, v)| (m.to_vec(), v.to_vec()))
             .collect();
         dst.set_moments(src.t, moments).unwrap();
+    }
+    if let (Some(src), Some(dst)) = (&from.aux, &mut to.aux) {
+        for ((_, s), (_, d)) in src.params().zip(dst.params()) {
+            d.set(s.as_tensor()).unwrap();
+        }
+        let copy = |src: &gaitscope::train::adam::Adam, dst: &mut gaitscope::train::adam::Adam| {
+            let moments = src
+                .moments()
+                .map(|(m, v)| (m.to_vec(), v.to_vec()))
+                .collect();
+            dst.set_moments(src.t, moments).unwrap();
+        };
+        copy(&src.actor_opt, &mut dst.actor_opt);
+        if let (Some(s), Some(d)) = (&src.critic_opt, &mut dst.critic_opt) {
+            copy(s, d);
+        }
+        dst.norm = src.norm.clone();
     }
     to.set_update_path(UpdatePath::Fused).unwrap();
 }
@@ -198,6 +236,59 @@ fn fresh_pair(net: &NetConfig) {
         compare_one_update(&what, &mut reference, &mut fused, &batch, k > 0);
         copy_learner(&reference, &mut fused);
     }
+}
+
+/// A learner with `--aux dynamics` (weight 0.5), its normalisation taken from `replay`.
+fn fresh_aux_learner(net: &NetConfig, replay: &ReplayBuffer) -> SacLearner {
+    let model = SacModel::new(net.clone(), 1.0, 7, &Device::Cpu).unwrap();
+    let config = SacConfig {
+        aux: gaitscope::policy::AuxConfig {
+            kind: gaitscope::policy::AuxKind::Dynamics,
+            weight: 0.5,
+        },
+        ..SacConfig::default()
+    };
+    let mut learner = SacLearner::new(model, config, Device::Cpu);
+    learner.init_aux(7).unwrap();
+    let mut batch = Batch::default();
+    replay.sample(1_000, &mut ChaCha8Rng::seed_from_u64(8), &mut batch);
+    let d = net.obs_dim;
+    for k in 0..batch.size {
+        let row =
+            |v: &[f32]| -> Vec<f64> { v[k * d..(k + 1) * d].iter().map(|&x| x.into()).collect() };
+        learner.observe(
+            &row(&batch.obs),
+            &row(&batch.next_obs),
+            batch.terminated[k] > 0.5,
+        );
+    }
+    learner
+}
+
+/// With the auxiliary dynamics loss: the same losses (aux ones included), gradients (the
+/// heads' and, through z, the encoders') and updated weights (the heads' too) on both paths.
+fn fresh_aux_pair(net: &NetConfig) {
+    let replay = random_replay(net);
+    let mut reference = fresh_aux_learner(net, &replay);
+    let mut fused = fresh_aux_learner(net, &replay);
+    fused.set_update_path(UpdatePath::Fused).unwrap();
+    let mut sampler = ChaCha8Rng::seed_from_u64(2);
+    let mut batch = Batch::default();
+    for k in 0..3 {
+        replay.sample(256, &mut sampler, &mut batch);
+        let what = format!("{} with --aux dynamics, update {k}", net.encoder);
+        compare_one_update(&what, &mut reference, &mut fused, &batch, k > 0);
+        copy_learner(&reference, &mut fused);
+    }
+}
+
+#[test]
+fn fused_matches_reference_with_the_dynamics_loss() {
+    fresh_aux_pair(&NetConfig::ant(EncoderKind::Lstm));
+    fresh_aux_pair(&NetConfig::ant(EncoderKind::MlpWindow));
+    let mut shared = NetConfig::ant(EncoderKind::Lstm);
+    shared.share_encoder = true;
+    fresh_aux_pair(&shared);
 }
 
 #[test]

@@ -192,8 +192,8 @@ fn only_the_lstm_encoder_solves_the_memory_problem() {
     );
 }
 
-/// The memory problem with `--aux dynamics` (on the reference update, as such runs train): the
-/// auxiliary loss is logged and falls, and the LSTM still learns to remember.
+/// The memory problem with `--aux dynamics`: the auxiliary head learns what it can predict, and
+/// the LSTM still learns to remember.
 #[test]
 fn the_lstm_with_the_dynamics_loss_still_solves_the_memory_problem() {
     let dir = tempfile::tempdir().unwrap();

@@ -449,10 +449,6 @@ fn aux_flags_are_checked() {
             vec!["--aux", "dynamics", "--aux-weight", "NaN"],
             "must be a number in (0, 1000]",
         ),
-        (
-            vec!["--aux", "dynamics", "--update", "fused"],
-            "--aux trains on --update reference",
-        ),
     ] {
         let (ok, e, _) = check(&extra);
         assert!(!ok && e.contains(message), "{extra:?}: {e}");

@@ -70,10 +70,9 @@ pub(crate) struct TrainArgs {
     /// pinned with `taskset -c N` uses one). The trained weights do not depend on it.
     #[arg(long)]
     threads: Option<usize>,
-    /// The update: fused (fast, the default) or reference (candle's autograd, for comparison;
-    /// what a run with --aux trains on).
-    #[arg(long, value_enum)]
-    update: Option<UpdatePath>,
+    /// The update: fused (fast, the default) or reference (candle's autograd, for comparison).
+    #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
+    update: UpdatePath,
     /// A self-supervised auxiliary loss for the encoders: dynamics (a head predicts the
     /// normalised change of the observation from [z, o_t, a_t]); none is plain SAC. No damage
     /// label enters it. With --resume it must match the run's, and may be left out.
@@ -161,10 +160,7 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
             opts.sac.aux.weight = w;
         }
     }
-    if args.update == Some(UpdatePath::Fused) && !opts.sac.aux.is_off() {
-        bail!("--aux trains on --update reference: the fused update has no auxiliary loss yet");
-    }
-    opts.update = args.update.unwrap_or(UpdatePath::Fused);
+    opts.update = args.update;
     opts.threads = match args.threads {
         Some(0) => bail!("--threads must be at least 1"),
         Some(n) => n,

@@ -98,7 +98,10 @@ pub struct AuxState {
 /// The auxiliary heads, their optimisers and the normalisation.
 pub struct AuxHeads {
     pub config: AuxConfig,
-    pub params: ParamStore,
+    /// The actor's head's weights (`aux.actor.*`) and the critic's (`aux.critic.*`, empty
+    /// without a critic head).
+    pub actor_params: ParamStore,
+    pub critic_params: ParamStore,
     pub actor: Mlp,
     /// None when the critic reads the actor's encoder (nothing of its own to shape).
     pub critic: Option<Mlp>,
@@ -146,11 +149,10 @@ impl AuxHeads {
         };
         let actor_opt = Adam::new(actor_store.vars(), lr);
         let critic_opt = critic.as_ref().map(|_| Adam::new(critic_store.vars(), lr));
-        let mut params = actor_store;
-        params.extend(critic_store);
         Ok(Self {
             config,
-            params,
+            actor_params: actor_store,
+            critic_params: critic_store,
             actor,
             critic,
             actor_opt,
@@ -185,6 +187,11 @@ impl AuxHeads {
         Ok(((loss * self.config.weight)?, value))
     }
 
+    /// Both heads' weights, actor's first.
+    pub fn params(&self) -> impl Iterator<Item = (&str, &candle_core::Var)> {
+        self.actor_params.iter().chain(self.critic_params.iter())
+    }
+
     fn optimizers(&self) -> Vec<(&'static str, &Adam)> {
         let mut opts = vec![("actor", &self.actor_opt)];
         if let Some(opt) = &self.critic_opt {
@@ -205,7 +212,7 @@ impl AuxHeads {
     pub fn tensors(&self) -> Result<Vec<(String, Tensor)>> {
         let cpu = Device::Cpu;
         let mut out = Vec::new();
-        for (name, var) in self.params.iter() {
+        for (name, var) in self.params() {
             out.push((name.to_string(), var.as_tensor().to_device(&cpu)?));
         }
         for (group, opt) in self.optimizers() {
@@ -281,7 +288,7 @@ impl AuxHeads {
                 .and_then(|t| t.flatten_all()?.to_vec1::<f32>())
                 .map_err(|e| e.to_string())
         };
-        for (name, var) in self.params.iter() {
+        for (name, var) in self.params() {
             Tensor::from_vec(f32s(name)?, var.shape(), var.device())
                 .and_then(|t| var.set(&t))
                 .map_err(|e| e.to_string())?;

@@ -327,13 +327,7 @@ pub fn train_with_save_hook(
         truncate_metrics(&opts.out, 0)?;
         (run, learner, state, replay, None)
     };
-    // The fused update has no auxiliary loss yet: a run with one trains on the reference path
-    // (the same algorithm; docs/training.md).
-    learner.set_update_path(if learner.aux.is_some() {
-        UpdatePath::Reference
-    } else {
-        opts.update
-    })?;
+    learner.set_update_path(opts.update)?;
     learner.set_threads(opts.threads)?;
     let net = opts.net.clone();
     let mut metrics = MetricsLog::open(&opts.out)?;

@@ -9,7 +9,7 @@ use rand_distr::StandardNormal;
 
 use super::adam::Adam;
 use super::aux::AuxHeads;
-use super::fused::FusedSac;
+use super::fused::{AuxTargets, FusedSac};
 use super::replay::Batch;
 pub use super::update_stats::UpdateStats;
 use crate::policy::layers::Grad;
@@ -89,11 +89,6 @@ impl SacLearner {
 
     /// Switches to `path`, carrying the current weights and optimiser state across.
     pub fn set_update_path(&mut self, path: UpdatePath) -> Result<()> {
-        if path == UpdatePath::Fused && self.aux.is_some() {
-            candle_core::bail!(
-                "the fused update has no auxiliary loss yet: --aux runs on --update reference"
-            );
-        }
         self.sync_model()?;
         self.fused = match path {
             UpdatePath::Reference => None,
@@ -102,6 +97,7 @@ impl SacLearner {
                 [&self.actor_opt, &self.critic_opt, &self.alpha_opt],
                 &self.config,
                 self.target_entropy,
+                self.aux.as_ref(),
             )?),
         };
         Ok(())
@@ -127,6 +123,7 @@ impl SacLearner {
                     &mut self.critic_opt,
                     &mut self.alpha_opt,
                 ],
+                self.aux.as_mut(),
             )?;
         }
         Ok(())
@@ -193,7 +190,17 @@ impl SacLearner {
     /// One gradient step on `batch`; `rng` draws the reparameterisation noise.
     pub fn update(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
         match &mut self.fused {
-            Some(fused) => fused.update(batch, rng),
+            Some(fused) => match &self.aux {
+                Some(aux) => {
+                    let (targets, mask) = aux.norm.targets(batch, self.model.net.obs_dim);
+                    let targets = AuxTargets {
+                        targets: &targets,
+                        mask: &mask,
+                    };
+                    fused.update(batch, rng, Some(targets))
+                }
+                None => fused.update(batch, rng, None),
+            },
             None => Ok(self.reference_update(batch, rng)?.0),
         }
     }
@@ -266,7 +273,7 @@ impl SacLearner {
             && let Some(opt) = &mut aux.critic_opt
         {
             opt.step(&critic_grads)?;
-            gradients.extend(named_gradients(&aux.params, &critic_grads)?);
+            gradients.extend(named_gradients(&aux.critic_params, &critic_grads)?);
         }
 
         // --- actor -------------------------------------------------------------------------------
@@ -293,7 +300,7 @@ impl SacLearner {
         if let Some(aux) = &mut self.aux {
             // Only the actor's head: the critic's took no part in this loss.
             aux.actor_opt.step(&actor_grads)?;
-            gradients.extend(named_gradients(&aux.params, &actor_grads)?);
+            gradients.extend(named_gradients(&aux.actor_params, &actor_grads)?);
         }
 
         // --- target critic -------------------------------------------------------------------

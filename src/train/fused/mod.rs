@@ -20,6 +20,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 use super::adam::{Adam, BETA1, BETA2, EPS};
+use super::aux::AuxHeads;
 use super::replay::Batch;
 use super::update_stats::UpdateStats;
 use crate::policy::layers::ParamStore;
@@ -581,8 +582,95 @@ pub struct FusedSac {
     /// (target index, source is the actor's, source index) for the Polyak update.
     polyak: Vec<(usize, bool, usize)>,
     ws: Workspace,
+    /// The encoders' auxiliary heads (`--aux`), trained with the actor and critic losses.
+    aux: Option<AuxFused>,
     /// With more than one thread: the pool the update's GEMMs split their tiles over.
     pool: Option<std::sync::Arc<rayon::ThreadPool>>,
+}
+
+/// The auxiliary heads on this path (train/aux.rs has the loss): each head's weights and Adam
+/// state as a group, and their buffers.
+struct AuxFused {
+    weight: f32,
+    actor_p: Group,
+    actor: Mlp,
+    critic: Option<(Group, Mlp)>,
+    work: AuxWork,
+}
+
+#[derive(Default)]
+struct AuxWork {
+    /// Head input [z, obs, action] (B rows).
+    x: Vec<f32>,
+    tape: MlpTape,
+    d_pred: Vec<f32>,
+    scratch: [Vec<f32>; 2],
+}
+
+/// The targets of this batch for the auxiliary heads: the normalised change of each row's
+/// observation (B × obs_dim) and 1 for rows that did not terminate (B).
+pub struct AuxTargets<'a> {
+    pub targets: &'a [f32],
+    pub mask: &'a [f32],
+}
+
+/// One auxiliary head's forward and backward: the mean squared error over non-terminal rows and
+/// observation dimensions (returned unweighted), its weights' gradients into `p.grads`, and
+/// weight × dL/dz added into `d_z` (B × z_dim).
+#[allow(clippy::too_many_arguments)]
+fn aux_step(
+    head: &Mlp,
+    p: &mut Group,
+    z: &[f32],
+    z_dim: usize,
+    batch: &Batch,
+    aux: &AuxTargets,
+    weight: f32,
+    work: &mut AuxWork,
+    d_z: &mut [f32],
+) -> f32 {
+    let b = batch.size;
+    let obs_dim = batch.obs.len() / b;
+    let act_dim = batch.actions.len() / b;
+    work.x.clear();
+    for i in 0..b {
+        work.x.extend_from_slice(&z[i * z_dim..(i + 1) * z_dim]);
+        work.x
+            .extend_from_slice(&batch.obs[i * obs_dim..(i + 1) * obs_dim]);
+        work.x
+            .extend_from_slice(&batch.actions[i * act_dim..(i + 1) * act_dim]);
+    }
+    head.forward(&p.values, &work.x, b, &mut work.tape);
+    let prediction = work.tape.output();
+    let rows = aux.mask.iter().sum::<f32>().max(1.0);
+    let denom = rows * obs_dim as f32;
+    let mut loss = 0f32;
+    work.d_pred.clear();
+    for i in 0..b {
+        let m = aux.mask[i];
+        for j in 0..obs_dim {
+            let k = i * obs_dim + j;
+            let e = prediction[k] - aux.targets[k];
+            loss += m * e * e;
+            work.d_pred.push(weight * 2.0 * m * e / denom);
+        }
+    }
+    let d_z = InputGrad {
+        out: d_z,
+        cols: 0..z_dim,
+        accumulate: true,
+    };
+    head.backward(
+        &p.values,
+        Some(&mut p.grads),
+        &work.x,
+        b,
+        &work.tape,
+        &work.d_pred,
+        Some(d_z),
+        &mut work.scratch,
+    );
+    loss / denom
 }
 
 impl FusedSac {
@@ -592,8 +680,31 @@ impl FusedSac {
         opts: [&Adam; 3],
         config: &SacConfig,
         target_entropy: f64,
+        aux: Option<&AuxHeads>,
     ) -> Result<Self> {
         let net = model.net.clone();
+        let aux = match aux {
+            Some(heads) => {
+                let actor_p = Group::new(&heads.actor_params, Some(&heads.actor_opt))?;
+                let actor = Mlp::find(&actor_p, "aux.actor", false)?;
+                let critic = match &heads.critic_opt {
+                    Some(opt) => {
+                        let p = Group::new(&heads.critic_params, Some(opt))?;
+                        let mlp = Mlp::find(&p, "aux.critic", false)?;
+                        Some((p, mlp))
+                    }
+                    None => None,
+                };
+                Some(AuxFused {
+                    weight: heads.config.weight as f32,
+                    actor_p,
+                    actor,
+                    critic,
+                    work: AuxWork::default(),
+                })
+            }
+            None => None,
+        };
         let [actor_opt, critic_opt, alpha_opt] = opts;
         let actor_p = Group::new(&model.actor_params, Some(actor_opt))?;
         let critic_p = Group::new(&model.critic_params, Some(critic_opt))?;
@@ -638,6 +749,7 @@ impl FusedSac {
             target,
             polyak,
             ws: Workspace::default(),
+            aux,
             pool: None,
         })
     }
@@ -660,7 +772,19 @@ impl FusedSac {
 
     /// Puts the live weights and Adam state back into the model and the reference optimisers
     /// (before saving a checkpoint).
-    pub fn write_back(&self, model: &SacModel, opts: [&mut Adam; 3]) -> Result<()> {
+    pub fn write_back(
+        &self,
+        model: &SacModel,
+        opts: [&mut Adam; 3],
+        heads: Option<&mut AuxHeads>,
+    ) -> Result<()> {
+        if let (Some(aux), Some(heads)) = (&self.aux, heads) {
+            aux.actor_p
+                .write_back(&heads.actor_params, Some(&mut heads.actor_opt))?;
+            if let (Some((p, _)), Some(opt)) = (&aux.critic, &mut heads.critic_opt) {
+                p.write_back(&heads.critic_params, Some(opt))?;
+            }
+        }
         let [actor_opt, critic_opt, alpha_opt] = opts;
         self.actor_p
             .write_back(&model.actor_params, Some(actor_opt))?;
@@ -672,9 +796,18 @@ impl FusedSac {
         Ok(())
     }
 
-    /// The last update's gradient of every trained parameter, by name (α, critic, actor).
+    /// The last update's gradient of every trained parameter, by name (α, critic, the
+    /// critic's auxiliary head, actor, the actor's auxiliary head).
     pub fn gradients(&self) -> Vec<(String, Vec<f32>)> {
-        [&self.alpha_p, &self.critic_p, &self.actor_p]
+        let mut groups = vec![&self.alpha_p, &self.critic_p];
+        if let Some((p, _)) = self.aux.as_ref().and_then(|a| a.critic.as_ref()) {
+            groups.push(p);
+        }
+        groups.push(&self.actor_p);
+        if let Some(aux) = &self.aux {
+            groups.push(&aux.actor_p);
+        }
+        groups
             .iter()
             .flat_map(|g| g.names.iter().cloned().zip(g.grads.iter().cloned()))
             .collect()
@@ -707,18 +840,32 @@ impl FusedSac {
 
     /// One gradient step on `batch`; `rng` draws the reparameterisation noise exactly as the
     /// reference does (current actions first, then next actions).
-    pub fn update(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
+    /// `aux`: this batch's targets when the run has auxiliary heads.
+    pub fn update(
+        &mut self,
+        batch: &Batch,
+        rng: &mut ChaCha8Rng,
+        aux: Option<AuxTargets>,
+    ) -> Result<UpdateStats> {
+        if self.aux.is_some() != aux.is_some() {
+            bail!("fused update: auxiliary targets given without heads, or heads without targets");
+        }
         match self.pool.clone() {
-            None => self.update_here(batch, rng),
+            None => self.update_here(batch, rng, aux.as_ref()),
             Some(pool) => pool.install(|| {
                 // The GEMM thread count is per thread: set it on the pool's thread that runs this.
                 crate::policy::gemm::set_threads(pool.current_num_threads());
-                self.update_here(batch, rng)
+                self.update_here(batch, rng, aux.as_ref())
             }),
         }
     }
 
-    fn update_here(&mut self, batch: &Batch, rng: &mut ChaCha8Rng) -> Result<UpdateStats> {
+    fn update_here(
+        &mut self,
+        batch: &Batch,
+        rng: &mut ChaCha8Rng,
+        aux_targets: Option<&AuxTargets>,
+    ) -> Result<UpdateStats> {
         let b = batch.size;
         let net = self.net.clone();
         let (act, t_len) = (net.act_dim, net.context_len);
@@ -841,8 +988,28 @@ impl FusedSac {
             || critic_step(q1, values, &mut q1_grads, input, target, b, cols.1, w1),
         );
         put_back_grads(&mut self.critic_p.grads, q1_grads, q1);
+        let mut aux_critic_loss = None;
         if let (Some(enc), Some(_)) = (&self.critic.encoder, d_z_cols) {
             sum_pair(&ws.q[0].d_input, &ws.q[1].d_input, &mut ws.d_z);
+            // The critic's auxiliary head reads the same z (its encoder before this step).
+            if let (Some(aux), Some(targets)) = (&mut self.aux, aux_targets)
+                && let Some((p, head)) = &mut aux.critic
+            {
+                let z = enc.z(&ws.critic_enc, t_len);
+                let loss = aux_step(
+                    head,
+                    p,
+                    z,
+                    net.z_dim,
+                    batch,
+                    targets,
+                    aux.weight,
+                    &mut aux.work,
+                    &mut ws.d_z,
+                );
+                p.adam(self.config.learning_rate);
+                aux_critic_loss = Some(f64::from(loss));
+            }
             enc.backward(
                 &self.critic_p.values,
                 &mut self.critic_p.grads,
@@ -915,7 +1082,7 @@ impl FusedSac {
             || action_grad(q1, values, input, b, f_dim..f_dim + act, w1),
         );
         sum_pair(&ws.q[0].d_input, &ws.q[1].d_input, &mut ws.d_action);
-        self.actor_backward(batch, win, alpha32);
+        let aux_loss = self.actor_backward(batch, win, alpha32, aux_targets);
         self.actor_p.adam(self.config.learning_rate);
 
         // --- target critic -------------------------------------------------------------------
@@ -937,13 +1104,21 @@ impl FusedSac {
             actor_loss: actor_loss as f64,
             alpha,
             alpha_loss: alpha_loss as f64,
-            ..UpdateStats::default()
+            aux_loss,
+            aux_critic_loss,
         })
     }
 
     /// Backward of the actor loss mean(α·log π(a|s) − min Q(s, a)) through the squashing, the
-    /// heads, the trunk and the encoder, given dL/da in `ws.d_action`.
-    fn actor_backward(&mut self, batch: &Batch, win: &[f32], alpha: f32) {
+    /// heads, the trunk and the encoder, given dL/da in `ws.d_action`; with auxiliary targets,
+    /// the actor's auxiliary head's loss joins at z (returned, unweighted).
+    fn actor_backward(
+        &mut self,
+        batch: &Batch,
+        win: &[f32],
+        alpha: f32,
+        aux_targets: Option<&AuxTargets>,
+    ) -> Option<f64> {
         let net = &self.net;
         let (b, act) = (batch.size, net.act_dim);
         let ws = &mut self.ws;
@@ -1014,6 +1189,24 @@ impl FusedSac {
             d_z,
             &mut ws.scratch,
         );
+        let mut aux_loss = None;
+        if let (Some(aux), Some(targets)) = (&mut self.aux, aux_targets) {
+            // z of the current observations: the first B rows of the actor's 2B-row pass.
+            let z = &self.actor.encoder.z(&ws.actor.enc, net.context_len)[..b * z_dim];
+            let loss = aux_step(
+                &aux.actor,
+                &mut aux.actor_p,
+                z,
+                z_dim,
+                batch,
+                targets,
+                aux.weight,
+                &mut aux.work,
+                &mut ws.d_z,
+            );
+            aux.actor_p.adam(self.config.learning_rate);
+            aux_loss = Some(f64::from(loss));
+        }
         if windows {
             self.actor.encoder.backward(
                 values,
@@ -1026,6 +1219,7 @@ impl FusedSac {
                 &mut ws.scratch,
             );
         }
+        aux_loss
     }
 }
 
