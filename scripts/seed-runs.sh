@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The evidence runs (issue 31): seeds 2-5 of every model, 500k steps each, the protocol of seed 0
-# (`gaitscope train` defaults); seeds 0-1 (and baseline-s2) are done. Two lanes, one per core,
-# at nice 19, so they only take what foreground work leaves. Each run resumes from its last
-# checkpoint (every 10,000 steps), so `start` is the same command on the first day and on a
-# fresh machine after a clone. The replay buffers live outside the work tree
+# (`gaitscope train` defaults); seeds 0-1 (and baseline-s2) are done. Then the LSTM with the
+# dynamics auxiliary loss (issue 33, `--aux dynamics`), seeds 0-2, the same protocol. Two
+# lanes, one per core, at nice 19, so they only take what foreground work leaves. Each run
+# resumes from its last checkpoint (every 10,000 steps), so `start` is the same command on the
+# first day and on a fresh machine after a clone. The replay buffers live outside the work tree
 # (~/.cache/gaitscope/replay/<run>), so a kept machine resumes with its buffer; a new machine
 # refills one with the current policy (train --refill, 50,000 transitions) before updating.
 #
@@ -21,12 +22,13 @@ state="$root/.deps/seed-runs"   # git-ignored: the binary copy, pids and logs
 replay_root="${GAITSCOPE_REPLAY_ROOT:-$HOME/.cache/gaitscope/replay}"
 steps=500000
 
-# About the same core-hours per lane (LSTM ~3.5 h a run, window-MLP ~1.7, baseline ~1.5 on one
-# core); the two seed-2 re-runs first, as they replace runs damaged by an empty-buffer resume.
+# About the same core-hours per lane (LSTM ~5 h a run beside foreground work, window-MLP ~2.6,
+# baseline ~1.7 on one core); the two seed-2 re-runs first, as they replace runs damaged by an
+# empty-buffer resume; the auxiliary-loss runs last.
 lane_runs() {
   case $1 in
-    0) echo "encoder-lstm-s2 encoder-lstm-s3 encoder-lstm-s4 baseline-s5" ;;
-    1) echo "encoder-mlp-s2 baseline-s3 encoder-mlp-s3 baseline-s4 encoder-mlp-s4 encoder-mlp-s5 encoder-lstm-s5" ;;
+    0) echo "encoder-lstm-s2 encoder-lstm-s3 encoder-lstm-s4 baseline-s5 encoder-lstm-aux-s0 encoder-lstm-aux-s2" ;;
+    1) echo "encoder-mlp-s2 baseline-s3 encoder-mlp-s3 baseline-s4 encoder-mlp-s4 encoder-mlp-s5 encoder-lstm-s5 encoder-lstm-aux-s1" ;;
   esac
 }
 
@@ -35,6 +37,13 @@ encoder_of() {
     baseline-*) echo none ;;
     encoder-lstm-*) echo lstm ;;
     encoder-mlp-*) echo mlp-window ;;
+  esac
+}
+
+# Training flags beyond the encoder and seed (a fresh run; a resume keeps the run's own).
+extra_of() {
+  case $1 in
+    encoder-lstm-aux-*) echo "--aux dynamics" ;;
   esac
 }
 
@@ -57,7 +66,8 @@ run_lane() {
     if [ -f "$dir/checkpoint.json" ]; then
       args=(--resume "$dir")
     else
-      args=(--encoder "$(encoder_of "$run")" --seed "${run##*-s}" --out "$dir")
+      # shellcheck disable=SC2207 # the extra flags are plain words
+      args=(--encoder "$(encoder_of "$run")" --seed "${run##*-s}" --out "$dir" $(extra_of "$run"))
     fi
     echo "$(date -u +%FT%TZ) lane $core: ${args[*]}"
     # `exec`-free so the lane survives to start the next run; the trainer's pid is kept for stop.

@@ -114,6 +114,9 @@ class Sweeps(unittest.TestCase):
             'search_alg = "optuna"\n[grid]\nseed = [0]\n': "move the [grid] keys there as choice",
             'metric = "reward"\n[grid]\nseed = [0]\n': "metric 'reward' is not reported",
             '[grid]\nz_dim = [0]\n': "z size",
+            '[grid]\nencoder = ["none"]\naux = ["dynamics"]\n': "not --encoder none",
+            '[grid]\naux_weight = [2.0]\n': "--aux-weight needs --aux dynamics",
+            '[grid]\naux = ["reconstruction"]\n': "invalid value 'reconstruction' for '--aux",
         }
         for body, reason in cases.items():
             with self.subTest(body=body):
