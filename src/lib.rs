@@ -10,6 +10,7 @@ pub mod config;
 pub mod damage;
 pub mod env;
 pub mod eval;
+pub mod explain;
 pub mod lane;
 pub mod plots;
 pub mod policy;

@@ -6,6 +6,7 @@ use clap::{Parser, Subcommand};
 mod cli;
 use cli::bench::BenchCommand;
 use cli::eval::EvalArgs;
+use cli::explain::ExplainArgs;
 use cli::import::ImportSb3Args;
 use cli::live::LiveArgs;
 use cli::probe::ProbeArgs;
@@ -41,6 +42,8 @@ enum Command {
     Eval(EvalArgs),
     /// Linear probes and PCA on an encoder's z; saves probe.json next to the checkpoint.
     Probe(ProbeArgs),
+    /// Which past steps drive z (or the action) at one step: integrated gradients over the window.
+    Explain(ExplainArgs),
     /// Training curves (return, success, losses, α, triggers) from runs' metrics.jsonl, as a PNG.
     Curves(CurvesArgs),
     /// Render an episode to MP4 with MuJoCo's renderer (cargo feature `video`; needs ffmpeg).
@@ -84,6 +87,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Curves(args) => cli::train::curves_command(args),
         Command::View(args) => cli::record::view_command(args),
         Command::Probe(args) => cli::probe::probe_command(args),
+        Command::Explain(args) => cli::explain::explain_command(args),
         Command::Bench(command) => cli::bench::bench_command(command),
     }
 }

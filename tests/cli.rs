@@ -550,3 +550,91 @@ fn out_of_range_numbers_are_refused() {
     ]));
     assert!(e.contains("env.goal"), "{e}");
 }
+
+/// `gaitscope explain`: integrated gradients of z over the window at step K, complete per output
+/// dimension, exactly zero in the slots the window has not filled yet (K < 16); clear errors.
+#[test]
+fn explain_attributes_z_to_the_window() {
+    let dir = env!("CARGO_MANIFEST_DIR").to_string() + "/checkpoints/encoder-lstm";
+    let out = gaitscope(&[
+        "explain",
+        "--checkpoint",
+        &dir,
+        "--step",
+        "10",
+        "--seed",
+        "4",
+        "--condition",
+        "severe",
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let v: Value = serde_json::from_str(stdout(&out).trim()).unwrap();
+    assert_eq!(v["step"], 10);
+    assert_eq!(v["target"], "z");
+    assert_eq!(v["complete"], true);
+    let a = v["attribution"].as_array().unwrap();
+    assert_eq!(a.len(), 32, "one row per z dimension");
+    let (out_now, base) = (
+        v["output"].as_array().unwrap(),
+        v["baseline_output"].as_array().unwrap(),
+    );
+    for (d, dim) in a.iter().enumerate() {
+        let slots = dim.as_array().unwrap();
+        assert_eq!(slots.len(), 16);
+        assert!(slots.iter().all(|s| s.as_array().unwrap().len() == 37));
+        // Ten steps taken: the six oldest slots are the reset's zeros, exactly.
+        for s in &slots[..6] {
+            assert!(
+                s.as_array()
+                    .unwrap()
+                    .iter()
+                    .all(|x| x.as_f64() == Some(0.0))
+            );
+        }
+        let total: f64 = slots
+            .iter()
+            .flat_map(|s| s.as_array().unwrap())
+            .map(|x| x.as_f64().unwrap())
+            .sum();
+        let change = out_now[d].as_f64().unwrap() - base[d].as_f64().unwrap();
+        assert!(
+            (total - change).abs() <= (0.01 * change.abs()).max(1e-3),
+            "dim {d}: Σ attribution {total} vs output change {change}"
+        );
+    }
+    let groups = v["summary"]["per_group"].as_array().unwrap();
+    assert_eq!(groups.len(), 10, "8 joints, torso, goal");
+    let base_dir = env!("CARGO_MANIFEST_DIR").to_string() + "/checkpoints/baseline";
+    let e = stderr(&gaitscope(&[
+        "explain",
+        "--checkpoint",
+        &base_dir,
+        "--step",
+        "3",
+    ]));
+    assert!(
+        e.contains("has no latent z") && e.contains("--target action"),
+        "{e}"
+    );
+    let e = stderr(&gaitscope(&[
+        "explain",
+        "--checkpoint",
+        &dir,
+        "--step",
+        "100000",
+        "--condition",
+        "severe",
+    ]));
+    assert!(e.contains("beyond the episode"), "{e}");
+    let e = stderr(&gaitscope(&[
+        "explain",
+        "--checkpoint",
+        &dir,
+        "--step",
+        "3",
+        "--ig-steps",
+        "0",
+    ]));
+    assert!(e.contains("--ig-steps 0 must lie in 1..=10000"), "{e}");
+}

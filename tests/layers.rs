@@ -13,7 +13,7 @@ const LAYERS: &[&[&str]] = &[
     &["window"],
     &["policy"],
     &["lane", "train"],
-    &["rollout", "eval"],
+    &["rollout", "eval", "explain"],
     &["probe"],
     &["telemetry"],
     &["video", "app"],

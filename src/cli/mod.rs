@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod eval;
+pub mod explain;
 pub mod import;
 pub mod live;
 pub mod probe;

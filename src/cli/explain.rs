@@ -1,0 +1,120 @@
+//! `gaitscope explain`.
+
+use anyhow::Result;
+use clap::Args;
+use serde_json::json;
+use std::path::PathBuf;
+
+use gaitscope::explain::{Target, explain_step};
+use gaitscope::{Condition, ConditionChoice};
+
+use super::EnvArgs;
+
+#[derive(Args)]
+pub(crate) struct ExplainArgs {
+    /// Checkpoint whose decision is explained.
+    #[arg(long, value_name = "DIR")]
+    checkpoint: PathBuf,
+    /// The step whose decision is explained (after this many steps of the episode).
+    #[arg(long)]
+    step: usize,
+    /// z (each latent dimension; encoder models) or action (each action dimension).
+    #[arg(long, value_enum, default_value_t = Target::Z)]
+    target: Target,
+    /// Damage condition; without it the episode draws one from its seed.
+    #[arg(long, value_name = "healthy|mild|severe")]
+    condition: Option<Condition>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Interpolation points of the path integral (default: from 64, doubled until the
+    /// attributions add up to the output's change within 1 % or 1e-3).
+    #[arg(long)]
+    ig_steps: Option<usize>,
+    /// One JSON object (attribution: output dims × window steps × features) instead of the
+    /// summary.
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    env: EnvArgs,
+}
+
+pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
+    let mut requested = args.env.load()?;
+    if let Some(c) = args.condition {
+        requested.damage.condition = ConditionChoice::Fixed(c);
+    }
+    requested.env.max_episode_steps = requested.env.max_episode_steps.max(args.step + 1);
+    let actor = gaitscope::lane::Actor::load(&args.checkpoint)?;
+    args.env.note_unused(&actor, &requested);
+    let (a, groups) = explain_step(
+        &actor,
+        &requested,
+        args.seed,
+        args.step,
+        args.target,
+        args.ig_steps,
+    )?;
+    let per_slot = a.per_slot();
+    let per_group = a.per_group(&groups);
+    if args.json {
+        let out = json!({
+            "step": args.step,
+            "target": a.target,
+            "ig_steps": a.steps,
+            "complete": a.is_complete(),
+            "attribution": a.attribution,
+            "obs_attribution": a.obs_attribution,
+            "output": a.output,
+            "baseline_output": a.baseline_output,
+            "completeness_error": a.completeness_error(),
+            "summary": {
+                "per_slot": per_slot,
+                "per_group": per_group.iter().map(|(n, v)| json!({"group": n, "abs_attribution": v})).collect::<Vec<_>>(),
+                "groups": groups,
+            },
+        });
+        println!("{out}");
+        return Ok(());
+    }
+    if !a.is_complete() {
+        eprintln!(
+            "warning: with {} interpolation points the attributions do not add up to the output's change (within 1 % or 1e-3); try more --ig-steps",
+            a.steps
+        );
+    }
+    println!(
+        "{} at step {} (seed {}, {} interpolation points): {} output dims, completeness error at most {:.2e}",
+        match args.target {
+            Target::Z => "z",
+            Target::Action => "action",
+        },
+        args.step,
+        args.seed,
+        a.steps,
+        a.output.len(),
+        a.completeness_error().iter().fold(0f64, |m, &e| m.max(e))
+    );
+    if !per_slot.is_empty() {
+        println!(
+            "\nper window slot (oldest first; slot {} is the latest step):",
+            per_slot.len() - 1
+        );
+        for (t, v) in per_slot.iter().enumerate() {
+            println!("  {t:>2}  {v:+.4}");
+        }
+    }
+    if let Some(obs) = &a.obs_attribution {
+        let total: f64 = obs.iter().flatten().map(|v| v.abs()).sum();
+        println!("\ncurrent observation: |attribution| {total:.4} in all");
+    }
+    if per_slot.is_empty() {
+        return Ok(());
+    }
+    println!("\nper window feature group (|attribution|, all slots and dims):");
+    let mut sorted = per_group;
+    sorted.sort_by(|a, b| b.1.total_cmp(&a.1));
+    for (name, v) in sorted {
+        println!("  {name:<8} {v:.4}");
+    }
+    Ok(())
+}
