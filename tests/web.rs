@@ -420,6 +420,10 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
 
         // Bad requests: refused with their reason, shown on the page, nothing changes.
         let handled = s["commands_handled"].as_u64().unwrap();
+        let too_many_edits = format!(
+            r#"{{"command":"edit","edit":"{}"}}"#,
+            vec!["fail:all"; 65].join(",")
+        );
         for (body, reason) in [
             ("{not json", "malformed request"),
             (
@@ -432,6 +436,10 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
                 "speed must be between",
             ),
             (r#"{"command":"self_destruct"}"#, "malformed request"),
+            (
+                too_many_edits.as_str(),
+                "65 edits in one request; at most 64",
+            ),
         ] {
             let reply = send_raw(&client, body).await;
             let error = reply["error"].as_str().unwrap_or_default();

@@ -403,6 +403,9 @@ struct Sim {
     speeds: BTreeMap<u64, (f64, u64)>,
 }
 
+/// Commands taken from the queue between two snapshots at most.
+const MAX_COMMAND_BATCH: usize = 4_096;
+
 impl Sim {
     fn target_rate(&self) -> f64 {
         self.speed / self.dt
@@ -426,8 +429,25 @@ impl Sim {
             match rx.recv_timeout(wait) {
                 Ok(Command::Quit) | Err(RecvTimeoutError::Disconnected) => break,
                 Ok(command) => {
+                    // And everything queued behind it (a request's commands arrive together):
+                    // one snapshot for the batch, not one per command, which made a long edit
+                    // list quadratic (each snapshot carries every override so far).
                     self.handle(command);
+                    let mut quit = false;
+                    for _ in 0..MAX_COMMAND_BATCH {
+                        match rx.try_recv() {
+                            Ok(Command::Quit) => {
+                                quit = true;
+                                break;
+                            }
+                            Ok(command) => self.handle(command),
+                            Err(_) => break,
+                        }
+                    }
                     *lock(&shared) = self.snapshot();
+                    if quit {
+                        break;
+                    }
                     continue;
                 }
                 Err(RecvTimeoutError::Timeout) => {}

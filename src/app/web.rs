@@ -34,6 +34,8 @@ const MAX_BODY_BYTES: u64 = 256 * 1024;
 const MAX_EVENT_CLIENTS: usize = 16;
 /// Most single steps one request may ask for.
 pub const MAX_STEPS_PER_REQUEST: usize = 1000;
+/// Damage edits one request may carry (each may name every joint).
+pub const MAX_EDITS_PER_REQUEST: usize = 64;
 
 /// Where the three servers listen.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -530,6 +532,12 @@ pub fn commands(
     let parse_edits = |text: &str| -> Result<Vec<DamageEdit>, String> {
         let names = joint_names()?;
         let edits = DamageEdit::parse_list(text).map_err(|e| e.to_string())?;
+        if edits.len() > MAX_EDITS_PER_REQUEST {
+            return Err(format!(
+                "{} edits in one request; at most {MAX_EDITS_PER_REQUEST}",
+                edits.len()
+            ));
+        }
         for edit in &edits {
             edit.target.resolve(&names).map_err(|e| e.to_string())?;
         }
@@ -568,7 +576,7 @@ pub fn commands(
         WebRequest::Edit { edit } => {
             let names = joint_names()?;
             let mut commands = Vec::new();
-            for edit in DamageEdit::parse_list(&edit).map_err(|e| e.to_string())? {
+            for edit in parse_edits(&edit)? {
                 let actuators = edit.target.resolve(&names).map_err(|e| e.to_string())?;
                 commands.extend(actuators.into_iter().map(|actuator| Command::Override {
                     actuator,
