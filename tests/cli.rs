@@ -1,6 +1,7 @@
 //! The `gaitscope` binary: summaries, the replay formats (checked against the Gymnasium
 //! fixture), and clear errors for bad files and flags.
 
+mod common;
 #[path = "common/gymnasium.rs"]
 mod gymnasium;
 
@@ -637,4 +638,54 @@ fn explain_attributes_z_to_the_window() {
         "0",
     ]));
     assert!(e.contains("--ig-steps 0 must lie in 1..=10000"), "{e}");
+}
+
+/// A recording that cannot be written completely (here: a file-size limit, as a full disk) is a
+/// clear error and leaves nothing under its name; a complete one is renamed into place whole.
+#[test]
+fn a_recording_that_cannot_be_written_leaves_no_truncated_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ant.rrd");
+    let limited = Command::new("bash")
+        .arg("-c")
+        // 100 KB at most per file; SIGXFSZ ignored so the write fails with EFBIG instead.
+        .arg(format!(
+            "trap '' XFSZ; ulimit -f 100; exec {} record --episodes 2 --max-steps 400 --seed 1 --out {}",
+            env!("CARGO_BIN_EXE_gaitscope"),
+            out.display()
+        ))
+        .output()
+        .unwrap();
+    let e = stderr(&limited);
+    assert_eq!(limited.status.code(), Some(1), "{e}");
+    assert!(e.contains("could not be written completely"), "{e}");
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+    let ok = gaitscope(&[
+        "record",
+        "--episodes",
+        "1",
+        "--max-steps",
+        "40",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok.status.success(), "{}", stderr(&ok));
+    let names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, ["ant.rrd"]);
+    // Whole: every message decodes, and the episode's 40 steps of distance are there.
+    let file = std::io::BufReader::new(std::fs::File::open(&out).unwrap());
+    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
+        .collect::<Result<_, _>>()
+        .expect("every message decodes");
+    let chunks = common::recording_chunks(msgs);
+    let distance: usize = chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == "/ant/goal/distance")
+        .map(|c| c.num_rows())
+        .sum();
+    assert!(distance > 0 && distance <= 40, "{distance} distance rows");
 }

@@ -669,12 +669,57 @@ pub enum RecordError {
     #[error("policy inference failed: {0}")]
     Policy(#[from] candle_core::Error),
 
+    #[error(
+        "the recording {path} could not be written completely: {reason}; nothing was left under that name"
+    )]
+    Incomplete {
+        path: std::path::PathBuf,
+        reason: String,
+    },
     #[error("--fork-at {at} is beyond episode {episode}, which ended after {steps} steps")]
     ForkBeyondEpisode {
         at: usize,
         episode: usize,
         steps: usize,
     },
+}
+
+/// The longest a recording's final flush to its file may take.
+const FILE_FLUSH_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// A recording file being written under `<name>.partial`, renamed to `<name>` when complete.
+struct PartialFile {
+    path: std::path::PathBuf,
+    partial: std::path::PathBuf,
+}
+
+impl PartialFile {
+    fn new(path: &std::path::Path) -> Self {
+        let mut name = path.file_name().unwrap_or_default().to_os_string();
+        name.push(".partial");
+        Self {
+            path: path.to_path_buf(),
+            partial: path.with_file_name(name),
+        }
+    }
+
+    /// Renames the flushed file into place (the writer finishes it, footer included, when the
+    /// stream closes; the open file keeps those writes across the rename).
+    fn rename_into_place(&self) -> Result<(), RecordError> {
+        std::fs::rename(&self.partial, &self.path).map_err(|e| RecordError::Incomplete {
+            path: self.path.clone(),
+            reason: format!("renaming {} into place: {e}", self.partial.display()),
+        })
+    }
+
+    /// Removes the incomplete file; the error says why it is incomplete.
+    fn abandon(&self, e: TelemetryError) -> RecordError {
+        let _ = std::fs::remove_file(&self.partial);
+        RecordError::Incomplete {
+            path: self.path.clone(),
+            reason: format!("{e} (is the disk full, or the file larger than the system allows?)"),
+        }
+    }
 }
 
 /// Entity roots for several models: `ant` alone, else each model's label (made unique).
@@ -713,7 +758,17 @@ pub fn record(
     );
     let labels: Vec<String> = opts.actors.iter().map(Actor::label).collect();
     let titles = super::view_titles(&labels, &roots);
-    let (rec, storage) = super::open_titled(&opts.sink, &recording_id, &roots, &titles)?;
+    // A file is written under a temporary name and renamed once complete: a failed write (a
+    // full disk) never leaves a truncated recording under the name asked for.
+    let file = match &opts.sink {
+        Sink::File(path) => Some(PartialFile::new(path)),
+        _ => None,
+    };
+    let sink = match &file {
+        Some(f) => Sink::File(f.partial.clone()),
+        None => opts.sink.clone(),
+    };
+    let (rec, storage) = super::open_titled(&sink, &recording_id, &roots, &titles)?;
     let specs = opts
         .actors
         .into_iter()
@@ -757,7 +812,22 @@ pub fn record(
         }
         episodes_done += 1;
     }
-    session.flush()?;
+    match &file {
+        // Bounded: a file writer that died on a write error leaves a queued flush unanswered
+        // (Rerun 0.36's FileSink), so an unbounded flush would hang.
+        // Bounded: a file writer that died on a write error leaves a queued flush unanswered
+        // (Rerun 0.36's FileSink), so an unbounded flush would hang.
+        Some(f) => match session.flush_within(FILE_FLUSH_TIMEOUT) {
+            Ok(()) => f.rename_into_place()?,
+            Err(e) => {
+                // Dropping the stream would join the thread still waiting on that flush: leave
+                // it to the process's exit rather than hang.
+                std::mem::forget(session);
+                return Err(f.abandon(e));
+            }
+        },
+        None => session.flush()?,
+    }
     Ok(RecordSummary {
         steps: session.global_step(),
         episodes: episodes_done,
