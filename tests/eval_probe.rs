@@ -287,11 +287,35 @@ fn eval_groups_seeds_and_pairs_them_by_training_seed() {
             .fold((0, 0), |(b, cc), (_, m)| (b + m.b, cc + m.c));
         assert_eq!((c.pooled.b, c.pooled.c), (b, cc));
     }
+    // rliable's aggregates: an IQM per group and condition (of two runs: their mean), the
+    // probability of improvement of the encoder over the baseline per condition.
+    for g in &seeds.groups {
+        let rates: Vec<f64> = g.runs.iter().map(|r| r.success[&500].rate).collect();
+        let mean = rates.iter().sum::<f64>() / rates.len() as f64;
+        assert!((g.success_iqm.mean - mean).abs() < 1e-12, "{}", g.group);
+    }
+    assert_eq!(seeds.improvements.len(), 2);
+    for i in &seeds.improvements {
+        assert_eq!(
+            (i.better.as_str(), i.than.as_str()),
+            ("encoder", "baseline")
+        );
+        let p = i.probability_of_improvement;
+        assert!((0.0..=1.0).contains(&p.mean) && p.low <= p.mean && p.mean <= p.high);
+    }
     let md = report.markdown();
     assert!(
-        md.contains("Across training seeds") && md.contains("Failure modes"),
+        md.contains("Across training seeds")
+            && md.contains("Failure modes")
+            && md.contains("IQM success@500")
+            && md.contains("Probability of improvement"),
         "{md}"
     );
+    let json = serde_json::to_value(&report).unwrap();
+    assert!(
+        json["across_seeds"]["improvements"][0]["probability_of_improvement"]["mean"].is_number()
+    );
+    assert!(json["across_seeds"]["groups"][0]["success_iqm"]["low"].is_number());
 }
 
 #[test]

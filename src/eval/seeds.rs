@@ -175,6 +175,117 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
     }
 }
 
+/// The interquartile mean (rliable, Agarwal et al. 2021): the mean of the middle half of the
+/// sorted scores, cutting ⌊n/4⌋ from each end (scipy's `trim_mean(x, 0.25)`, which rliable
+/// calls): of 8 scores the middle 4, of 6 the middle 4, of 3 all three.
+pub fn iqm(scores: &[f64]) -> f64 {
+    if scores.is_empty() {
+        return f64::NAN;
+    }
+    let mut sorted = scores.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let cut = sorted.len() / 4;
+    let middle = &sorted[cut..sorted.len() - cut];
+    middle.iter().sum::<f64>() / middle.len() as f64
+}
+
+/// rliable's probability of improvement P(X > Y) on one task: over every pair of a run of X and
+/// a run of Y, 1 when X's score is higher, ½ when equal, 0 when lower (the Mann–Whitney U
+/// statistic over m·n).
+pub fn probability_of_improvement(x: &[f64], y: &[f64]) -> f64 {
+    if x.is_empty() || y.is_empty() {
+        return f64::NAN;
+    }
+    let wins: f64 = x
+        .iter()
+        .flat_map(|a| y.iter().map(move |b| (a, b)))
+        .map(|(a, b)| match a.total_cmp(b) {
+            std::cmp::Ordering::Greater => 1.0,
+            std::cmp::Ordering::Equal => 0.5,
+            std::cmp::Ordering::Less => 0.0,
+        })
+        .sum();
+    wins / (x.len() * y.len()) as f64
+}
+
+/// One bootstrap resample of per-seed rates: the seeds drawn with replacement, then each drawn
+/// seed's episodes (a binomial draw at its rate), as [`bootstrap_means`] does.
+fn resample_rates(seeds: &[(usize, usize)], rng: &mut ChaCha8Rng) -> Vec<f64> {
+    (0..seeds.len())
+        .map(|_| {
+            let (k, n) = seeds[rng.random_range(0..seeds.len())];
+            let drawn = match Binomial::new(n as u64, k as f64 / n as f64) {
+                Ok(b) => b.sample(rng),
+                Err(_) => k as u64,
+            };
+            drawn as f64 / n as f64
+        })
+        .collect()
+}
+
+fn rates_of(seeds: &[(usize, usize)]) -> Vec<(usize, usize)> {
+    seeds.iter().copied().filter(|&(_, n)| n > 0).collect()
+}
+
+fn percentile_interval(point: f64, mut draws: Vec<f64>) -> Interval {
+    if draws.is_empty() || point.is_nan() {
+        return Interval {
+            mean: point,
+            low: f64::NAN,
+            high: f64::NAN,
+        };
+    }
+    draws.sort_by(f64::total_cmp);
+    Interval {
+        mean: point,
+        low: quantile(&draws, 0.025),
+        high: quantile(&draws, 0.975),
+    }
+}
+
+/// The IQM of the seeds' success rates with its 95 % stratified bootstrap interval (`mean`
+/// holds the IQM).
+pub fn iqm_bootstrap(seeds: &[(usize, usize)], reps: usize, rng_seed: u64) -> Interval {
+    let usable = rates_of(seeds);
+    let rates: Vec<f64> = usable.iter().map(|&(k, n)| k as f64 / n as f64).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(rng_seed);
+    let draws = if usable.is_empty() {
+        Vec::new()
+    } else {
+        (0..reps)
+            .map(|_| iqm(&resample_rates(&usable, &mut rng)))
+            .collect()
+    };
+    percentile_interval(iqm(&rates), draws)
+}
+
+/// P(X > Y) over the two groups' per-seed success rates, with its 95 % bootstrap interval
+/// (each group's seeds and episodes resampled independently; `mean` holds the estimate).
+pub fn improvement_bootstrap(
+    x: &[(usize, usize)],
+    y: &[(usize, usize)],
+    reps: usize,
+    rng_seed: u64,
+) -> Interval {
+    let (x, y) = (rates_of(x), rates_of(y));
+    let rate = |s: &[(usize, usize)]| -> Vec<f64> {
+        s.iter().map(|&(k, n)| k as f64 / n as f64).collect()
+    };
+    let point = probability_of_improvement(&rate(&x), &rate(&y));
+    let mut rng = ChaCha8Rng::seed_from_u64(rng_seed);
+    let draws = if x.is_empty() || y.is_empty() {
+        Vec::new()
+    } else {
+        (0..reps)
+            .map(|_| {
+                let (a, b) = (resample_rates(&x, &mut rng), resample_rates(&y, &mut rng));
+                probability_of_improvement(&a, &b)
+            })
+            .collect()
+    };
+    percentile_interval(point, draws)
+}
+
 /// Seed-level paired test: flips the sign of every seed's difference (encoder − baseline rate)
 /// in all 2^S ways; p is the share of flips whose |sum| is at least the observed one. With three
 /// seeds its smallest possible value is 0.25: three seeds cannot be significant at seed level.
@@ -227,6 +338,9 @@ pub struct GroupCell {
     pub runs: Vec<SeedCell>,
     /// Mean over seeds of success within each budget, with its stratified bootstrap interval.
     pub success: BTreeMap<usize, Interval>,
+    /// rliable's IQM of the seeds' success@500 (the middle half of the runs), with its 95 %
+    /// stratified bootstrap interval.
+    pub success_iqm: Interval,
     /// Summed over seeds.
     pub failure_modes: FailureCounts,
     /// Mean over seeds (the seeds where any episode reached damage), with its interval.
@@ -256,6 +370,17 @@ pub struct GroupRecovery {
     pub of_means: RecoveryFraction,
 }
 
+/// rliable's probability of improvement of one group over another under one condition, on the
+/// runs' success@500.
+#[derive(Debug, Clone, Serialize)]
+pub struct Improvement {
+    pub better: String,
+    pub than: String,
+    pub condition: Case,
+    /// P(better > than) over all pairs of their runs, with its 95 % bootstrap interval.
+    pub probability_of_improvement: Interval,
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct AcrossSeeds {
     pub bootstrap_reps: usize,
@@ -263,6 +388,8 @@ pub struct AcrossSeeds {
     pub groups: Vec<GroupCell>,
     pub comparisons: Vec<GroupComparison>,
     pub recovery: Vec<GroupRecovery>,
+    /// Every encoder group against the baseline, and each pair of encoder groups.
+    pub improvements: Vec<Improvement>,
 }
 
 /// Groups the episodes by model and compares each encoder group with the baseline group.
@@ -337,10 +464,16 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                 .collect();
             let failure_modes =
                 FailureCounts::of(runs.iter().flat_map(|(_, m)| run_episodes(m, condition)));
+            let success_iqm = iqm_bootstrap(
+                &counts(&|c| c.success[&500]),
+                BOOTSTRAP_REPS,
+                BOOTSTRAP_SEED,
+            );
             cells.push(GroupCell {
                 group: group.clone(),
                 encoder: *encoder,
                 condition,
+                success_iqm,
                 success_after_damage: stratified_bootstrap(
                     &counts(&|c| c.success_after_damage),
                     BOOTSTRAP_REPS,
@@ -439,12 +572,54 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
             }
         }
     }
+    // Encoders against the baseline first, then each pair of encoders (in evaluation order).
+    let mut pairs: Vec<(&str, &str)> = Vec::new();
+    let encoders: Vec<&str> = groups
+        .iter()
+        .filter(|(_, k, _)| *k != EncoderKind::None)
+        .map(|(g, _, _)| g.as_str())
+        .collect();
+    if let Some((base, _, _)) = baseline {
+        pairs.extend(encoders.iter().map(|e| (*e, base.as_str())));
+    }
+    for (i, a) in encoders.iter().enumerate() {
+        pairs.extend(encoders[i + 1..].iter().map(|b| (*a, *b)));
+    }
+    let mut improvements = Vec::new();
+    for (better, than) in pairs {
+        for &condition in conditions {
+            let counts = |g: &str| -> Vec<(usize, usize)> {
+                cells
+                    .iter()
+                    .find(|c| c.group == g && c.condition == condition)
+                    .map(|c| {
+                        c.runs
+                            .iter()
+                            .map(|r| (r.success[&500].successes, r.success[&500].n))
+                            .collect()
+                    })
+                    .unwrap_or_default()
+            };
+            improvements.push(Improvement {
+                better: better.to_string(),
+                than: than.to_string(),
+                condition,
+                probability_of_improvement: improvement_bootstrap(
+                    &counts(better),
+                    &counts(than),
+                    BOOTSTRAP_REPS,
+                    BOOTSTRAP_SEED,
+                ),
+            });
+        }
+    }
     AcrossSeeds {
         bootstrap_reps: BOOTSTRAP_REPS,
         bootstrap_seed: BOOTSTRAP_SEED,
         groups: cells,
         comparisons,
         recovery,
+        improvements,
     }
 }
 
@@ -475,20 +650,21 @@ impl AcrossSeeds {
         let mut s = format!(
             "**Across training seeds** (success: each seed, then the mean over seeds with its 95 % \
              stratified bootstrap interval: seeds, then episodes within each, {} resamples)\n\n\
-             | model | condition | seeds | success@500 per seed | success@500 | success@350 | success@250 |\n\
-             |---|---|---|---|---:|---:|---:|\n",
+             | model | condition | seeds | success@500 per seed | success@500 | IQM success@500 | success@350 | success@250 |\n\
+             |---|---|---|---|---:|---:|---:|---:|\n",
             self.bootstrap_reps
         );
         for g in &self.groups {
             let seeds: Vec<String> = g.runs.iter().map(|r| r.train_seed.to_string()).collect();
             let per_seed: Vec<String> = g.runs.iter().map(|r| pct(r.success[&500].rate)).collect();
             s += &format!(
-                "| {} | {} | {} | {} | {} | {} | {} |\n",
+                "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
                 g.group,
                 g.condition,
                 seeds.join(", "),
                 per_seed.join(", "),
                 interval(&g.success[&500]),
+                interval(&g.success_iqm),
                 interval(&g.success[&350]),
                 interval(&g.success[&250]),
             );
@@ -546,6 +722,21 @@ impl AcrossSeeds {
                     p.p_exact,
                     100.0 * c.mean_difference,
                     c.seed_sign_flip_p,
+                );
+            }
+        }
+        if !self.improvements.is_empty() {
+            s += "\n**Probability of improvement** (rliable, Agarwal et al. 2021: over every pair of \
+                  a run of the first model and a run of the second, the share where the first's \
+                  success@500 is higher, ties counting ½; 0.5 = no difference; 95 % bootstrap \
+                  interval over seeds and episodes. The IQM column above is rliable's interquartile \
+                  mean: the mean of the middle half of the runs)\n\n\
+                  | model | than | condition | P(improvement) |\n|---|---|---|---:|\n";
+            for i in &self.improvements {
+                let p = i.probability_of_improvement;
+                s += &format!(
+                    "| {} | {} | {} | {:.2} [{:.2}, {:.2}] |\n",
+                    i.better, i.than, i.condition, p.mean, p.low, p.high
                 );
             }
         }
@@ -659,6 +850,72 @@ mod tests {
         // 0.1, 0.2, 0.4: |sums| 0.7, 0.5, 0.3, 0.1 twice each; ≥ 0.7 only the two extremes.
         assert_eq!(seed_sign_flip_p(&[0.1, 0.2, 0.4]), 0.25);
         assert_eq!(seed_sign_flip_p(&[0.5]), 1.0);
+        // Six seeds all one way: 2 of 64 patterns are as extreme, p = 0.031.
+        let six = [0.1, 0.05, 0.2, 0.15, 0.1, 0.3];
+        assert_eq!(seed_sign_flip_p(&six), 2.0 / 64.0);
+    }
+
+    #[test]
+    fn iqm_is_the_mean_of_the_middle_half() {
+        // rliable's definition (scipy.stats.trim_mean(x, 0.25)): of 8 values the middle 4.
+        let eight = [0.9, 0.1, 0.5, 0.3, 0.7, 0.2, 0.6, 0.4];
+        assert!((iqm(&eight) - (0.3 + 0.4 + 0.5 + 0.6) / 4.0).abs() < 1e-12);
+        // 6 values: ⌊6/4⌋ = 1 cut from each end.
+        let six = [0.0, 1.0, 0.2, 0.4, 0.6, 0.8];
+        assert!((iqm(&six) - 0.5).abs() < 1e-12);
+        // 3 values: nothing cut.
+        assert!((iqm(&[0.1, 0.2, 0.9]) - 0.4).abs() < 1e-12);
+        assert!(iqm(&[]).is_nan());
+    }
+
+    #[test]
+    fn probability_of_improvement_counts_pairs_with_ties_as_half() {
+        // Pairs (x > y): 0.5 vs {0.4, 0.5, 0.9} → 1, ½, 0; 0.7 vs them → 1, 1, 0: 3.5 / 6.
+        let p = probability_of_improvement(&[0.5, 0.7], &[0.4, 0.5, 0.9]);
+        assert!((p - 3.5 / 6.0).abs() < 1e-12);
+        assert_eq!(probability_of_improvement(&[0.2], &[0.2]), 0.5);
+        assert_eq!(probability_of_improvement(&[0.9, 0.8], &[0.1, 0.2]), 1.0);
+        assert!(
+            (probability_of_improvement(&[0.5, 0.7], &[0.4, 0.5, 0.9])
+                + probability_of_improvement(&[0.4, 0.5, 0.9], &[0.5, 0.7])
+                - 1.0)
+                .abs()
+                < 1e-12,
+            "P(X > Y) + P(Y > X) = 1"
+        );
+    }
+
+    #[test]
+    fn bootstrap_intervals_hold_the_estimate_and_shrink_with_certainty() {
+        let x = [
+            (80, 100),
+            (90, 100),
+            (70, 100),
+            (85, 100),
+            (75, 100),
+            (95, 100),
+        ];
+        let y = [
+            (20, 100),
+            (30, 100),
+            (10, 100),
+            (25, 100),
+            (15, 100),
+            (35, 100),
+        ];
+        let i = iqm_bootstrap(&x, 2_000, 1);
+        assert!(
+            (i.mean - 0.825).abs() < 1e-12,
+            "IQM of the middle four rates"
+        );
+        assert!(i.low <= i.mean && i.mean <= i.high && i.high - i.low < 0.2);
+        let p = improvement_bootstrap(&x, &y, 2_000, 1);
+        assert_eq!(p.mean, 1.0);
+        assert!(p.low > 0.9, "every resample keeps x above y: {p:?}");
+        // Two groups with the same runs: 0.5, and an interval on both sides of it.
+        let same = improvement_bootstrap(&x, &x, 2_000, 1);
+        assert_eq!(same.mean, 0.5);
+        assert!(same.low < 0.5 && same.high > 0.5, "{same:?}");
     }
 
     fn episode(
