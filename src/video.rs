@@ -36,6 +36,12 @@ pub enum VideoError {
     Encoder(String),
     #[error("cannot write {path}: {reason}")]
     Write { path: PathBuf, reason: String },
+    #[error("--width {0} must be a multiple of 4 for two lanes side by side")]
+    OddLanes(usize),
+    #[error("--out {0} should end in .mp4")]
+    NotMp4(PathBuf),
+    #[error(transparent)]
+    Fork(#[from] crate::lane::LaneError),
 }
 
 /// How the camera moves.
@@ -449,6 +455,79 @@ impl VideoLane {
         self.frame = self.renderer.frame_with(self.lane.env(), &label)?;
         Ok(self.lane.last())
     }
+}
+
+/// What `gaitscope video` renders.
+pub struct VideoOptions {
+    pub out: PathBuf,
+    pub spec: FrameSpec,
+    /// The model (a checkpoint or a built-in policy), and a second one side by side.
+    pub actor: crate::lane::Actor,
+    pub compare: Option<crate::lane::Actor>,
+    /// The requested world: condition and step limit (each model runs in its own world).
+    pub config: crate::config::GaitConfig,
+    pub seed: u64,
+    pub fork: Option<crate::lane::Fork>,
+}
+
+/// Renders one episode to `opts.out`: every check (size, name, fork in the model's world)
+/// before the file is created; two lanes (a comparison or a fork) side by side, each half the
+/// width and captioned with its model's name. Returns the frame count.
+pub fn render(opts: VideoOptions) -> Result<usize, VideoError> {
+    let VideoOptions {
+        out,
+        spec,
+        actor,
+        compare,
+        config,
+        seed,
+        fork,
+    } = opts;
+    spec.check()?;
+    if out.extension().and_then(|e| e.to_str()) != Some("mp4") {
+        return Err(VideoError::NotMp4(out));
+    }
+    if let Some(f) = &fork {
+        f.validate(&actor.world(&config))?;
+    }
+    let two = compare.is_some() || fork.is_some();
+    let lane_spec = if two {
+        if !spec.width.is_multiple_of(4) {
+            return Err(VideoError::OddLanes(spec.width));
+        }
+        FrameSpec {
+            width: spec.width / 2,
+            ..spec
+        }
+    } else {
+        spec
+    };
+    // A lane alone needs no caption; side by side each says which model it is.
+    let caption = |a: &crate::lane::Actor| match a {
+        _ if !two => String::new(),
+        crate::lane::Actor::Checkpoint { .. } => a.label(),
+        other => format!("{} policy", other.label()),
+    };
+    let mut lanes = vec![VideoLane::new(
+        caption(&actor),
+        actor,
+        &config,
+        seed,
+        lane_spec,
+    )?];
+    if let Some(other) = compare {
+        lanes.push(VideoLane::new(
+            caption(&other),
+            other,
+            &config,
+            seed,
+            lane_spec,
+        )?);
+    }
+    let mut encoder = Encoder::start(&out, spec)?;
+    let frames = render_episode(lanes, fork.as_ref(), spec, lane_spec, &mut encoder)?;
+    encoder.finish()?;
+    Ok(frames)
 }
 
 /// Runs the lanes in lockstep to the end of every episode, one frame per step: lanes side by

@@ -100,20 +100,19 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
     let Some(out) = args.resume.clone().or(args.out.clone()) else {
         bail!("train needs --out DIR (or --resume DIR)");
     };
-    let encoder = match (&args.resume, args.encoder) {
-        (Some(dir), expected) => {
-            let found = gaitscope::policy::checkpoint::read_meta(dir)?.net.encoder;
-            if let Some(expected) = expected
-                && expected != found
-            {
-                bail!(
-                    "{} is a '{found}' run; --encoder {expected} does not match",
-                    dir.display()
-                );
-            }
-            found
-        }
-        (None, encoder) => encoder.unwrap_or(EncoderKind::Lstm),
+    let requested = train::RunIdentity {
+        encoder: args.encoder,
+        aux: args.aux,
+        aux_weight: args.aux_weight,
+    };
+    // A resumed run keeps what it is; the flags may only repeat it.
+    let aux = match &args.resume {
+        Some(dir) => requested.check_against(dir)?.sac.aux,
+        None => requested.fresh_aux()?,
+    };
+    let encoder = match &args.resume {
+        Some(dir) => gaitscope::policy::checkpoint::read_meta(dir)?.net.encoder,
+        None => args.encoder.unwrap_or(EncoderKind::Lstm),
     };
     let mut opts = train::ant_options(encoder, args.steps, args.seed, out.clone());
     opts.env = args.env.load()?;
@@ -137,29 +136,7 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
     if let Some(l) = args.learning_starts {
         opts.sac.learning_starts = l;
     }
-    if let Some(dir) = &args.resume {
-        let run = gaitscope::policy::checkpoint::read_meta(dir)?.sac.aux;
-        if args.aux.is_some_and(|kind| kind != run.kind)
-            || args.aux_weight.is_some_and(|w| w != run.weight)
-        {
-            bail!(
-                "{} trains with --aux {:?} (weight {}); --aux/--aux-weight cannot change on resume",
-                dir.display(),
-                run.kind,
-                run.weight
-            );
-        }
-    } else {
-        if let Some(kind) = args.aux {
-            opts.sac.aux.kind = kind;
-        }
-        if let Some(w) = args.aux_weight {
-            if opts.sac.aux.is_off() {
-                bail!("--aux-weight needs --aux dynamics");
-            }
-            opts.sac.aux.weight = w;
-        }
-    }
+    opts.sac.aux = aux;
     opts.update = args.update;
     opts.threads = match args.threads {
         Some(0) => bail!("--threads must be at least 1"),

@@ -64,17 +64,7 @@ pub(crate) fn video_command(_: VideoArgs) -> Result<()> {
 
 #[cfg(feature = "video")]
 pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
-    use gaitscope::video::{Encoder, FrameSpec, VideoLane, render_episode};
-    let spec = FrameSpec {
-        width: args.width,
-        height: args.height,
-        fps: args.fps,
-        camera: args.camera,
-    };
-    spec.check()?;
-    if args.out.extension().and_then(|e| e.to_str()) != Some("mp4") {
-        bail!("--out {} should end in .mp4", args.out.display());
-    }
+    use gaitscope::video::{FrameSpec, VideoOptions, render};
     if args.max_steps == 0 {
         bail!("--max-steps must be at least 1");
     }
@@ -91,58 +81,25 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
         .as_deref()
         .map(gaitscope::lane::Actor::load)
         .transpose()?;
-    let fork = super::fork_option(args.fork_at, args.fork.as_deref())?;
-    if let Some(f) = &fork {
-        f.validate(&actor.world(&config))?;
-    }
     for a in std::iter::once(&actor).chain(&compare) {
         args.env.note_unused(a, &config);
     }
-    // Side by side: two lanes, each half the width (kept even for the encoder).
-    let two = compare.is_some() || fork.is_some();
-    let lane_spec = if two {
-        if !args.width.is_multiple_of(4) {
-            bail!(
-                "--width {} must be a multiple of 4 for two lanes side by side",
-                args.width
-            );
-        }
-        FrameSpec {
-            width: args.width / 2,
-            ..spec
-        }
-    } else {
-        spec
+    let spec = FrameSpec {
+        width: args.width,
+        height: args.height,
+        fps: args.fps,
+        camera: args.camera,
     };
-    let label_of = |dir: &Option<PathBuf>| match dir {
-        Some(dir) => gaitscope::eval::model_label(dir),
-        None => format!("{:?} policy", args.policy).to_lowercase(),
-    };
-    let first_label = if two {
-        label_of(&args.checkpoint)
-    } else {
-        String::new()
-    };
-    let mut lanes = vec![VideoLane::new(
-        first_label,
-        actor,
-        &config,
-        args.seed,
-        lane_spec,
-    )?];
-    if let Some(other) = compare {
-        lanes.push(VideoLane::new(
-            label_of(&args.compare),
-            other,
-            &config,
-            args.seed,
-            lane_spec,
-        )?);
-    }
-    let mut encoder = Encoder::start(&args.out, spec)?;
     let started = std::time::Instant::now();
-    let frames = render_episode(lanes, fork.as_ref(), spec, lane_spec, &mut encoder)?;
-    encoder.finish()?;
+    let frames = render(VideoOptions {
+        out: args.out.clone(),
+        spec,
+        actor,
+        compare,
+        config,
+        seed: args.seed,
+        fork: super::fork_option(args.fork_at, args.fork.as_deref())?,
+    })?;
     let secs = started.elapsed().as_secs_f64();
     eprintln!(
         "{frames} frames {}×{} in {secs:.1} s ({:.1} frames/s) → {}",

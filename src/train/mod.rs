@@ -682,6 +682,60 @@ fn validate_options(opts: &TrainOptions) -> Result<(), TrainError> {
     Ok(())
 }
 
+/// What a run is, as the command line states it: a resume must match the run's own (and may
+/// leave any of it out); a fresh run takes it.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RunIdentity {
+    pub encoder: Option<EncoderKind>,
+    pub aux: Option<crate::policy::AuxKind>,
+    pub aux_weight: Option<f64>,
+}
+
+impl RunIdentity {
+    /// The run in `dir`, if the stated identity matches it.
+    pub fn check_against(&self, dir: &Path) -> Result<checkpoint::CheckpointMeta, TrainError> {
+        let meta = checkpoint::read_meta(dir)?;
+        let found = meta.net.encoder;
+        if let Some(expected) = self.encoder
+            && expected != found
+        {
+            return Err(TrainError::Options(format!(
+                "{} is a '{found}' run; --encoder {expected} does not match",
+                dir.display()
+            )));
+        }
+        let run = meta.sac.aux;
+        if self.aux.is_some_and(|kind| kind != run.kind)
+            || self.aux_weight.is_some_and(|w| w != run.weight)
+        {
+            return Err(TrainError::Options(format!(
+                "{} trains with --aux {} (weight {}); --aux/--aux-weight cannot change on resume",
+                dir.display(),
+                aux_name(run.kind),
+                run.weight
+            )));
+        }
+        Ok(meta)
+    }
+
+    /// The auxiliary loss of a fresh run.
+    pub fn fresh_aux(&self) -> Result<crate::policy::AuxConfig, TrainError> {
+        let mut aux = crate::policy::AuxConfig::default();
+        if let Some(kind) = self.aux {
+            aux.kind = kind;
+        }
+        if let Some(w) = self.aux_weight {
+            if aux.is_off() {
+                return Err(TrainError::Options(
+                    "--aux-weight needs --aux dynamics".into(),
+                ));
+            }
+            aux.weight = w;
+        }
+        Ok(aux)
+    }
+}
+
 fn aux_name(kind: crate::policy::AuxKind) -> &'static str {
     match kind {
         crate::policy::AuxKind::None => "none",
