@@ -1309,6 +1309,62 @@ pub fn ant_options(
 mod tests {
     use super::*;
 
+    #[test]
+    fn a_resume_may_only_repeat_what_the_run_is() {
+        let dir = tempfile::tempdir().unwrap();
+        let net = NetConfig {
+            hidden: vec![8],
+            z_dim: 2,
+            ..NetConfig::ant(EncoderKind::Lstm)
+        };
+        let sac = SacConfig {
+            aux: crate::policy::AuxConfig {
+                kind: crate::policy::AuxKind::Dynamics,
+                weight: 0.5,
+            },
+            ..SacConfig::default()
+        };
+        let record = TrainingRecord {
+            env: GaitConfig::default(),
+            sac,
+            seed: 1,
+            steps_done: 0,
+            episodes_done: 0,
+            wall_time_s: 0.0,
+            imported_from: None,
+        };
+        SacModel::new(net, 1.0, 1, &Device::Cpu)
+            .unwrap()
+            .save(dir.path(), &record)
+            .unwrap();
+        let id = |encoder, aux, aux_weight| RunIdentity {
+            encoder,
+            aux,
+            aux_weight,
+        };
+        use crate::policy::AuxKind::{Dynamics, None as Off};
+        // Silence and repetition pass; any difference is named.
+        assert!(id(None, None, None).check_against(dir.path()).is_ok());
+        let same = id(Some(EncoderKind::Lstm), Some(Dynamics), Some(0.5));
+        assert_eq!(same.check_against(dir.path()).unwrap().sac.aux.weight, 0.5);
+        for (other, words) in [
+            (
+                id(Some(EncoderKind::None), None, None),
+                "'lstm' run; --encoder none",
+            ),
+            (id(None, Some(Off), None), "cannot change on resume"),
+            (id(None, None, Some(1.0)), "cannot change on resume"),
+        ] {
+            let e = other.check_against(dir.path()).unwrap_err().to_string();
+            assert!(e.contains(words), "{e}");
+        }
+        // A fresh run: the weight needs the loss.
+        assert!(id(None, None, Some(2.0)).fresh_aux().is_err());
+        let aux = id(None, Some(Dynamics), Some(2.0)).fresh_aux().unwrap();
+        assert_eq!((aux.kind, aux.weight), (Dynamics, 2.0));
+        assert!(id(None, None, None).fresh_aux().unwrap().is_off());
+    }
+
     /// Observe s ~ U(−1, 1), act, earn −(a − s/2)²; eight steps an episode.
     struct Toy {
         rng: ChaCha8Rng,
