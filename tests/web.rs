@@ -746,3 +746,69 @@ fn a_signal_ends_live_web_with_its_report_and_saved_file() {
         );
     }
 }
+
+/// One HTTP request on its own connection; the whole answer (or what came within 20 s).
+fn raw_http(port: u16, request: &str) -> String {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    stream.write_all(request.as_bytes()).unwrap();
+    let mut answer = Vec::new();
+    let _ = stream.read_to_end(&mut answer);
+    String::from_utf8_lossy(&answer).into_owned()
+}
+
+fn post(port: u16, body: &str) -> String {
+    raw_http(
+        port,
+        &format!(
+            "POST /command HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n\
+             Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            body.len()
+        ),
+    )
+}
+
+/// A client that announces a body and stalls holds only its own request: the page's state, other
+/// commands and Quit go on; a stalled body loses its slot after its time.
+#[test]
+fn a_stalled_request_does_not_freeze_the_page() {
+    use std::io::Write;
+    let (mut live, [port, _, _]) = live_web(&[std::ffi::OsStr::new("--paused")], Stdio::null());
+    // Announces 5,000 bytes, sends one, keeps the connection open.
+    let mut stalled = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    stalled
+        .write_all(
+            format!(
+                "POST /command HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n\
+                 Content-Length: 5000\r\n\r\n{{"
+            )
+            .as_bytes(),
+        )
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let state = raw_http(
+        port,
+        &format!("GET /state HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"),
+    );
+    assert!(state.starts_with("HTTP/1.1 200"), "{state}");
+    assert!(state.contains("\"paused\":true"), "{state}");
+    let stepped = post(port, r#"{"command":"step","count":3}"#);
+    assert!(
+        stepped.starts_with("HTTP/1.1 200") && stepped.contains("receipt"),
+        "{stepped}"
+    );
+    let quit = post(port, r#"{"command":"quit"}"#);
+    assert!(quit.starts_with("HTTP/1.1 200"), "{quit}");
+    let deadline = Instant::now() + WAIT;
+    while live.0.try_wait().unwrap().is_none() {
+        assert!(
+            Instant::now() < deadline,
+            "Quit ended the session despite the stalled client"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    drop(stalled);
+}

@@ -34,6 +34,12 @@ const MAX_BODY_BYTES: u64 = 256 * 1024;
 const MAX_EVENT_CLIENTS: usize = 16;
 /// Most single steps one request may ask for.
 pub const MAX_STEPS_PER_REQUEST: usize = 1000;
+/// Command requests whose bodies are being read at once; more wait for a free slot (503).
+const MAX_POSTS_IN_FLIGHT: usize = 8;
+/// A command request's body must arrive within this; a slower one loses its slot (its thread
+/// finishes or not on its own, but answers nothing the sim acts on).
+const BODY_TIMEOUT: Duration = Duration::from_secs(5);
+
 /// Damage edits one request may carry (each may name every joint).
 pub const MAX_EDITS_PER_REQUEST: usize = 64;
 
@@ -205,8 +211,9 @@ impl WebServer {
         let started = Instant::now();
         let mut stats = WebStats::default();
         let clients = Arc::new(AtomicUsize::new(0));
-        let mut sent = 0u64;
+        let posts = Posts::default();
         loop {
+            posts.expire();
             if sim.snapshot().stopped
                 || deadline.is_some_and(|d| Instant::now() >= d)
                 || stop.load(std::sync::atomic::Ordering::Relaxed)
@@ -219,7 +226,7 @@ impl WebServer {
                 Err(_) => break,
             };
             stats.requests += 1;
-            match self.route(request, sim, &clients, &mut sent) {
+            match self.route(request, sim, &clients, &posts) {
                 Routed::Command => stats.commands += 1,
                 Routed::Refused => stats.refused += 1,
                 Routed::Other => {}
@@ -231,10 +238,10 @@ impl WebServer {
 
     fn route(
         &self,
-        mut request: tiny_http::Request,
+        request: tiny_http::Request,
         sim: &SimHandle,
         clients: &Arc<AtomicUsize>,
-        sent: &mut u64,
+        posts: &Posts,
     ) -> Routed {
         if let Err(reason) = self.check_origin(&request) {
             respond(request, 403, &json!({ "error": reason }));
@@ -273,28 +280,7 @@ impl WebServer {
                 self.stream_events(request, sim, clients.clone());
                 Routed::Other
             }
-            (tiny_http::Method::Post, "/command") => {
-                let snapshot = sim.snapshot();
-                match self.read_command(&mut request, &snapshot) {
-                    Ok(commands) => {
-                        let n = commands.len() as u64;
-                        let delivered = commands.into_iter().all(|c| sim.send(c));
-                        if !delivered {
-                            respond(request, 503, &json!({ "error": "the simulation stopped" }));
-                            return Routed::Refused;
-                        }
-                        // The page is the sim's only sender: its command has been applied once
-                        // the snapshot's `commands_handled` reaches this receipt.
-                        *sent += n;
-                        respond(request, 200, &json!({ "ok": true, "receipt": *sent }));
-                        Routed::Command
-                    }
-                    Err(error) => {
-                        respond(request, 400, &json!({ "error": error }));
-                        Routed::Refused
-                    }
-                }
-            }
+            (tiny_http::Method::Post, "/command") => self.post_command(request, sim, posts),
             _ => {
                 respond(
                     request,
@@ -334,23 +320,65 @@ impl WebServer {
         Ok(())
     }
 
-    fn read_command(
-        &self,
-        request: &mut tiny_http::Request,
-        snapshot: &Snapshot,
-    ) -> Result<Vec<Command>, String> {
-        let mut body = String::new();
-        request
-            .as_reader()
-            .take(MAX_BODY_BYTES + 1)
-            .read_to_string(&mut body)
-            .map_err(|e| format!("reading the request: {e}"))?;
-        if body.len() as u64 > MAX_BODY_BYTES {
-            return Err(format!("request larger than {MAX_BODY_BYTES} bytes"));
+    /// A command request, read and applied on a thread of its own so that a client that
+    /// stalls mid-body holds only its slot, never the serving loop (GET /state, Quit and
+    /// `--exit-after` go on). Applied in the order bodies complete.
+    fn post_command(&self, request: tiny_http::Request, sim: &SimHandle, posts: &Posts) -> Routed {
+        let Some(slot) = posts.take_slot() else {
+            respond(
+                request,
+                503,
+                &json!({ "error": format!("{MAX_POSTS_IN_FLIGHT} command requests are still being read; try again") }),
+            );
+            return Routed::Refused;
+        };
+        let (tx, shared, checkpoints) = (
+            sim.sender(),
+            sim.shared_snapshot(),
+            self.checkpoints.clone(),
+        );
+        let mine = posts.clone();
+        let spawned = std::thread::Builder::new()
+            .name("gaitscope-web-command".into())
+            .spawn(move || {
+                let mut request = request;
+                let body = read_body(&mut request);
+                // Past its time the slot was given back and the request answers nothing.
+                if !mine.release(slot) {
+                    respond(
+                        request,
+                        408,
+                        &json!({ "error": "the request body came too slowly" }),
+                    );
+                    return;
+                }
+                let snapshot = lock_snapshot(&shared);
+                let parsed = body.and_then(|body| {
+                    let request: WebRequest = serde_json::from_str(&body)
+                        .map_err(|e| format!("malformed request: {e}"))?;
+                    commands(request, &snapshot, &checkpoints)
+                });
+                match parsed {
+                    Ok(commands) => {
+                        // The page is the sim's only sender: its command has been applied once
+                        // the snapshot's `commands_handled` reaches this receipt.
+                        let mut sent = mine.sent.lock().unwrap_or_else(|e| e.into_inner());
+                        let n = commands.len() as u64;
+                        if !commands.into_iter().all(|c| tx.send(c).is_ok()) {
+                            respond(request, 503, &json!({ "error": "the simulation stopped" }));
+                            return;
+                        }
+                        *sent += n;
+                        respond(request, 200, &json!({ "ok": true, "receipt": *sent }));
+                    }
+                    Err(error) => respond(request, 400, &json!({ "error": error })),
+                }
+            });
+        if spawned.is_err() {
+            posts.release(slot);
+            return Routed::Refused;
         }
-        let request: WebRequest =
-            serde_json::from_str(&body).map_err(|e| format!("malformed request: {e}"))?;
-        commands(request, snapshot, &self.checkpoints)
+        Routed::Command
     }
 
     /// Server-sent events on their own thread: a snapshot whenever it changed, until the
@@ -449,6 +477,59 @@ fn respond(request: tiny_http::Request, status: u16, body: &Value) {
         .with_header(header("Content-Type", "application/json"))
         .with_header(header("Cache-Control", "no-store"));
     let _ = request.respond(response);
+}
+
+/// The body of a command request, at most [`MAX_BODY_BYTES`].
+fn read_body(request: &mut tiny_http::Request) -> Result<String, String> {
+    let mut body = String::new();
+    request
+        .as_reader()
+        .take(MAX_BODY_BYTES + 1)
+        .read_to_string(&mut body)
+        .map_err(|e| format!("reading the request: {e}"))?;
+    if body.len() as u64 > MAX_BODY_BYTES {
+        return Err(format!("request larger than {MAX_BODY_BYTES} bytes"));
+    }
+    Ok(body)
+}
+
+fn lock_snapshot(shared: &Arc<std::sync::Mutex<Snapshot>>) -> Snapshot {
+    shared.lock().unwrap_or_else(|e| e.into_inner()).clone()
+}
+
+/// Command requests in flight: their slots (by when their reading began) and the receipt
+/// counter the sim's `commands_handled` is compared with.
+#[derive(Clone, Default)]
+struct Posts {
+    slots: Arc<std::sync::Mutex<Vec<(u64, Instant)>>>,
+    next: Arc<std::sync::atomic::AtomicU64>,
+    sent: Arc<std::sync::Mutex<u64>>,
+}
+
+impl Posts {
+    fn take_slot(&self) -> Option<u64> {
+        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        if slots.len() >= MAX_POSTS_IN_FLIGHT {
+            return None;
+        }
+        let id = self.next.fetch_add(1, Ordering::SeqCst);
+        slots.push((id, Instant::now()));
+        Some(id)
+    }
+
+    /// Gives the slot back; false if it had already expired.
+    fn release(&self, id: u64) -> bool {
+        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        let before = slots.len();
+        slots.retain(|(i, _)| *i != id);
+        slots.len() < before
+    }
+
+    /// Frees the slots of bodies slower than [`BODY_TIMEOUT`].
+    fn expire(&self) {
+        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        slots.retain(|(_, started)| started.elapsed() < BODY_TIMEOUT);
+    }
 }
 
 /// What the page may ask, one JSON object each: `{"command": "pause"}`,
