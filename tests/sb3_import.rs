@@ -307,6 +307,46 @@ fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
             ImportEncoder::None,
             "--encoder none does not fit a 621-d observation",
         ),
+        (
+            // Bytes where weights should be: refused from the pickle's own record, before any
+            // storage is read (it imported as garbage with exit 0 before).
+            "byte storage",
+            in_policy(&baseline, &|pkl| {
+                let (from, to) = (&b"FloatStorage\n"[..], &b"ByteStorage\n"[..]);
+                let at = pkl.windows(from.len()).position(|w| w == from).unwrap();
+                [&pkl[..at], to, &pkl[at + from.len()..]].concat()
+            }),
+            ImportEncoder::Auto,
+            "has dtype U8; SB3's weights are floats",
+        ),
+        (
+            // A zip bomb: policy.pth inflates to 300 MB of zeros from a few hundred KB.
+            "zip bomb",
+            {
+                let mut input = zip::ZipArchive::new(std::io::Cursor::new(&baseline[..])).unwrap();
+                let mut output = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+                let deflated = zip::write::SimpleFileOptions::default()
+                    .compression_method(zip::CompressionMethod::Deflated);
+                for i in 0..input.len() {
+                    let mut file = input.by_index(i).unwrap();
+                    let entry = file.name().unwrap().to_string();
+                    output.start_file(entry.clone(), deflated).unwrap();
+                    if entry.ends_with("policy.pth") {
+                        let zeros = vec![0u8; 1 << 20];
+                        for _ in 0..300 {
+                            output.write_all(&zeros).unwrap();
+                        }
+                    } else {
+                        let mut bytes = Vec::new();
+                        file.read_to_end(&mut bytes).unwrap();
+                        output.write_all(&bytes).unwrap();
+                    }
+                }
+                output.finish().unwrap().into_inner()
+            },
+            ImportEncoder::Auto,
+            "inflates to 314572800 bytes (at most 268435456)",
+        ),
     ];
     let tmp = tempfile::tempdir().unwrap();
     for (what, bytes, encoder, expected) in cases {

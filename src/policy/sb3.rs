@@ -102,6 +102,12 @@ pub enum Sb3Error {
         what: &'static str,
         source: candle_core::Error,
     },
+    #[error("{path}: {what} is refused: {reason}")]
+    Unsafe {
+        path: PathBuf,
+        what: &'static str,
+        reason: String,
+    },
     #[error("{0} already exists; choose another --out or remove it")]
     OutputExists(PathBuf),
     #[error("cannot write {path}: {source}")]
@@ -146,14 +152,25 @@ impl Archive {
                     .into(),
             });
         }
-        let bytes = std::fs::read(path).map_err(|source| Sb3Error::Read {
-            path: path.to_owned(),
-            source,
-        })?;
         let not_archive = |reason: String| Sb3Error::NotAnArchive {
             path: path.to_owned(),
             reason,
         };
+        let size = std::fs::metadata(path)
+            .map_err(|source| Sb3Error::Read {
+                path: path.to_owned(),
+                source,
+            })?
+            .len();
+        if size > MAX_ARCHIVE_BYTES {
+            return Err(not_archive(format!(
+                "{size} bytes; an SB3 SAC archive of the Ant is a few MB (at most {MAX_ARCHIVE_BYTES} read)"
+            )));
+        }
+        let bytes = std::fs::read(path).map_err(|source| Sb3Error::Read {
+            path: path.to_owned(),
+            source,
+        })?;
         let mut zip = zip::ZipArchive::new(std::io::Cursor::new(&bytes))
             .map_err(|e| not_archive(format!("not a readable zip ({e})")))?;
         let mut entry = |name: &str| -> Result<Option<Vec<u8>>, Sb3Error> {
@@ -162,9 +179,24 @@ impl Archive {
                 Err(zip::result::ZipError::FileNotFound) => return Ok(None),
                 Err(e) => return Err(not_archive(format!("entry '{name}': {e}"))),
             };
+            // The directory's size first (a zip bomb announces itself), then a bounded read
+            // (a directory can lie).
+            if file.size() > MAX_ENTRY_BYTES {
+                return Err(not_archive(format!(
+                    "entry '{name}' inflates to {} bytes (at most {MAX_ENTRY_BYTES})",
+                    file.size()
+                )));
+            }
             let mut out = Vec::new();
-            file.read_to_end(&mut out)
+            (&mut file)
+                .take(MAX_ENTRY_BYTES + 1)
+                .read_to_end(&mut out)
                 .map_err(|e| not_archive(format!("entry '{name}' is damaged ({e})")))?;
+            if out.len() as u64 > MAX_ENTRY_BYTES {
+                return Err(not_archive(format!(
+                    "entry '{name}' inflates past {MAX_ENTRY_BYTES} bytes"
+                )));
+            }
             Ok(Some(out))
         };
         let data = entry("data")?.ok_or_else(|| not_archive("it has no 'data' entry".into()))?;
@@ -296,8 +328,43 @@ fn check_spaces(archive: &Archive) -> Result<usize, Sb3Error> {
     Ok(obs_dim)
 }
 
+/// The largest archive read, the largest entry inflated (both far above a SAC policy's few MB).
+const MAX_ARCHIVE_BYTES: u64 = 1 << 30;
+const MAX_ENTRY_BYTES: u64 = 256 << 20;
+/// The most elements one tensor may declare (a 256 × 256 layer has 65,536).
+const MAX_TENSOR_ELEMENTS: usize = 16 << 20;
+
+/// Runs a dependency's reader on untrusted bytes: a panic in it is this archive's error, not
+/// the process's end.
+fn guarded<T>(
+    archive: &Archive,
+    what: &'static str,
+    read: impl FnOnce() -> candle_core::Result<T>,
+) -> Result<T, Sb3Error> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(read)) {
+        Ok(result) => result.map_err(|source| Sb3Error::Pickle {
+            path: archive.path.clone(),
+            what,
+            source,
+        }),
+        Err(panic) => Err(Sb3Error::Unsafe {
+            path: archive.path.clone(),
+            what,
+            reason: format!(
+                "the pickle reader failed on it ({})",
+                panic
+                    .downcast_ref::<String>()
+                    .map(String::as_str)
+                    .or_else(|| panic.downcast_ref::<&str>().copied())
+                    .unwrap_or("a panic")
+            ),
+        }),
+    }
+}
+
 /// Reads a PyTorch pickle (bytes from the archive) through a temporary file, as candle's reader
-/// takes a path.
+/// takes a path. Every tensor's dtype and declared size are checked from the pickle before any
+/// storage is allocated: only float tensors of bounded size are read.
 fn read_pth(
     archive: &Archive,
     what: &'static str,
@@ -309,11 +376,43 @@ fn read_pth(
         path: file.clone(),
         source,
     })?;
-    let read = candle_core::pickle::read_all(&file).map_err(|source| Sb3Error::Pickle {
-        path: archive.path.clone(),
-        what,
-        source,
+    let checked = guarded(archive, what, || {
+        candle_core::pickle::read_pth_tensor_info(&file, false, None)
+    })
+    .and_then(|infos| {
+        for info in &infos {
+            let unsafe_tensor = |reason: String| Sb3Error::Unsafe {
+                path: archive.path.clone(),
+                what,
+                reason: format!("tensor '{}' {reason}", info.name),
+            };
+            if !matches!(
+                info.dtype,
+                DType::F16 | DType::BF16 | DType::F32 | DType::F64
+            ) {
+                return Err(unsafe_tensor(format!(
+                    "has dtype {:?}; SB3's weights are floats",
+                    info.dtype
+                )));
+            }
+            let elements = info
+                .layout
+                .dims()
+                .iter()
+                .try_fold(1usize, |n, &d| n.checked_mul(d))
+                .filter(|&n| n <= MAX_TENSOR_ELEMENTS);
+            if elements.is_none() || info.storage_size > MAX_TENSOR_ELEMENTS {
+                return Err(unsafe_tensor(format!(
+                    "declares shape {:?} (storage {}); at most {MAX_TENSOR_ELEMENTS} elements",
+                    info.layout.dims(),
+                    info.storage_size
+                )));
+            }
+        }
+        Ok(())
     });
+    let read =
+        checked.and_then(|()| guarded(archive, what, || candle_core::pickle::read_all(&file)));
     let _ = std::fs::remove_file(&file);
     let mut out = BTreeMap::new();
     for (name, tensor) in read? {
