@@ -320,6 +320,20 @@ fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
             "has dtype U8; SB3's weights are floats",
         ),
         (
+            // A thousand nested tuples ahead of the state dict: refused by the dry run of the
+            // pickle (candle's reader recursed on such nesting until the stack overflowed).
+            "deep nesting",
+            in_policy(&baseline, &|pkl| {
+                let mut nested = pkl[..2].to_vec();
+                nested.push(b')');
+                nested.extend(std::iter::repeat_n(0x85u8, 1_000));
+                nested.extend_from_slice(&pkl[2..]);
+                nested
+            }),
+            ImportEncoder::Auto,
+            "objects nest deeper than 256",
+        ),
+        (
             // A zip bomb: policy.pth inflates to 300 MB of zeros from a few hundred KB.
             "zip bomb",
             {

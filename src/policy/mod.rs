@@ -14,6 +14,7 @@ pub mod checkpoint;
 pub(crate) mod gemm;
 pub mod layers;
 pub mod lstm_kernel;
+pub mod pickle_guard;
 pub mod sb3;
 
 use candle_core::{D, Device, Result, Tensor, Var};

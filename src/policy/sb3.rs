@@ -371,6 +371,7 @@ fn read_pth(
     bytes: &[u8],
     scratch: &Path,
 ) -> Result<BTreeMap<String, Tensor>, Sb3Error> {
+    check_pickles(archive, what, bytes)?;
     let file = scratch.join(what);
     std::fs::write(&file, bytes).map_err(|source| Sb3Error::Write {
         path: file.clone(),
@@ -419,6 +420,40 @@ fn read_pth(
         out.insert(name, tensor.to_dtype(DType::F32)?);
     }
     Ok(out)
+}
+
+/// Every `data.pkl` inside a .pth (itself a zip) through [`super::pickle_guard::check`]: its
+/// nesting and size bounded before candle's reader builds anything.
+fn check_pickles(archive: &Archive, what: &'static str, pth: &[u8]) -> Result<(), Sb3Error> {
+    let refuse = |reason: String| Sb3Error::Unsafe {
+        path: archive.path.clone(),
+        what,
+        reason,
+    };
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(pth))
+        .map_err(|e| refuse(format!("not a readable zip ({e})")))?;
+    for i in 0..zip.len() {
+        let mut file = zip
+            .by_index(i)
+            .map_err(|e| refuse(format!("entry {i}: {e}")))?;
+        let is_pickle = file.name().is_ok_and(|n| n.ends_with("data.pkl"));
+        if !is_pickle {
+            continue;
+        }
+        if file.size() > MAX_ENTRY_BYTES {
+            return Err(refuse(format!(
+                "its pickle inflates to {} bytes",
+                file.size()
+            )));
+        }
+        let mut pkl = Vec::new();
+        (&mut file)
+            .take(MAX_ENTRY_BYTES)
+            .read_to_end(&mut pkl)
+            .map_err(|e| refuse(format!("its pickle is damaged ({e})")))?;
+        super::pickle_guard::check(&pkl).map_err(|e| refuse(format!("its pickle: {e}")))?;
+    }
+    Ok(())
 }
 
 /// The policy's state dict, by name.
