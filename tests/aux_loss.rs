@@ -7,13 +7,14 @@
 use candle_core::{Device, Tensor};
 use gaitscope::GaitConfig;
 use gaitscope::damage::{Condition, ConditionChoice};
-use gaitscope::env::AntEnv;
 use gaitscope::policy::{AuxConfig, AuxKind, EncoderKind, NetConfig, SacConfig, SacModel};
 use gaitscope::train::aux::{AuxHeads, DeltaNorm};
-use gaitscope::train::replay::{Batch, ReplayBuffer, Transition};
+use gaitscope::train::replay::{Batch, ReplayBuffer};
 use gaitscope::train::sac::{SacLearner, UpdatePath};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+mod common;
 
 const DYNAMICS: AuxConfig = AuxConfig {
     kind: AuxKind::Dynamics,
@@ -34,30 +35,10 @@ fn transitions(condition: Condition, steps: usize, seed: u64, net: &NetConfig) -
     let mut config = GaitConfig::default();
     config.damage.condition = ConditionChoice::Fixed(condition);
     config.damage.threshold = 2.0;
-    let mut env = AntEnv::new(config, seed).unwrap();
-    let mut replay = ReplayBuffer::new(steps, net.obs_dim, net.act_dim, net.context_len);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut obs = env.reset_with_seed(seed).to_vec();
-    let mut t = 0;
-    for _ in 0..steps {
-        let action: Vec<f64> = (0..8).map(|_| rng.random_range(-1.0..=1.0)).collect();
-        let out = env.step(&action).unwrap();
-        replay.push(Transition {
-            obs: &obs,
-            action: &action,
-            reward: out.reward.total,
-            next_obs: &out.obs,
-            terminated: out.terminated,
-            truncated: out.truncated,
-            t_in_episode: t,
-        });
-        (obs, t) = if out.done() {
-            (env.reset().to_vec(), 0)
-        } else {
-            (out.obs.to_vec(), t + 1)
-        };
-    }
-    replay
+    common::filled_replay(config, net, steps, seed, |_, _| {
+        (0..8).map(|_| rng.random_range(-1.0..=1.0)).collect()
+    })
 }
 
 #[test]

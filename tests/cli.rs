@@ -494,7 +494,7 @@ fn rollout_prints_the_fork_lanes_summary_too() {
 /// Several episodes' step lines tell apart: each names its episode and reset seed.
 #[test]
 fn jsonl_lines_carry_their_episode_and_seed() {
-    let out = gaitscope(&[
+    let lines = common::gaitscope_json_lines([
         "rollout",
         "--episodes",
         "3",
@@ -503,12 +503,8 @@ fn jsonl_lines_carry_their_episode_and_seed() {
         "--max-steps",
         "20",
         "--jsonl",
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let lines: Vec<Value> = stdout(&out)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    ])
+    .unwrap();
     for k in 0..3u64 {
         let of_k: Vec<&Value> = lines.iter().filter(|l| l["episode"] == k).collect();
         assert!(!of_k.is_empty(), "episode {k} has lines");

@@ -193,28 +193,19 @@ fn a_policy_from_a_state_matches_the_replay_of_its_actions() {
 fn rollout_runs_a_checkpoint_in_its_own_world() {
     let tmp = tempfile::tempdir().unwrap();
     common::save_checkpoint_in_world(tmp.path(), 10.0, 16);
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args(["rollout", "--checkpoint", tmp.path().to_str().unwrap()])
-        .args([
-            "--condition",
-            "severe",
-            "--episodes",
-            "1",
-            "--max-steps",
-            "300",
-            "--jsonl",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = common::gaitscope_json_lines([
+        "rollout",
+        "--checkpoint",
+        tmp.path().to_str().unwrap(),
+        "--condition",
+        "severe",
+        "--episodes",
+        "1",
+        "--max-steps",
+        "300",
+        "--jsonl",
+    ])
+    .unwrap();
     // The first step at which any joint is triggered: its fatigue crossed 10, not 30.
     let first = lines
         .iter()

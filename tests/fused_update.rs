@@ -10,15 +10,16 @@
 //! an element-wise bound would not (the largest element-wise errors are printed).
 
 use candle_core::Device;
-use gaitscope::env::AntEnv;
 use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
-use gaitscope::train::replay::{Batch, ReplayBuffer, Transition};
+use gaitscope::train::replay::{Batch, ReplayBuffer};
 use gaitscope::train::sac::{SacLearner, UpdatePath, UpdateStats};
 use gaitscope::{ConditionChoice, GaitConfig};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use std::path::PathBuf;
+
+mod common;
 
 const TOL: f64 = 1e-5;
 
@@ -45,41 +46,11 @@ fn filled_replay(
     net: &NetConfig,
     steps: usize,
     seed: u64,
-    mut act: impl FnMut(&[f64], &[f32]) -> Vec<f64>,
+    act: impl FnMut(&[f64], &[f32]) -> Vec<f64>,
 ) -> ReplayBuffer {
     let mut config = GaitConfig::default();
     config.damage.condition = ConditionChoice::Random;
-    let window_len = if net.encoder.uses_window() {
-        net.context_len
-    } else {
-        0
-    };
-    let mut replay = ReplayBuffer::new(steps, net.obs_dim, net.act_dim, window_len);
-    let mut env = AntEnv::new(config, seed).unwrap();
-    let mut window = gaitscope::ContextWindow::new(net.context_len);
-    let mut obs = env.reset_with_seed(seed).to_vec();
-    let mut t = 0;
-    for _ in 0..steps {
-        let action = act(&obs, window.as_slice());
-        let out = env.step(&action).unwrap();
-        replay.push(Transition {
-            obs: &obs,
-            action: &action,
-            reward: out.reward.total,
-            next_obs: &out.obs,
-            terminated: out.terminated,
-            truncated: out.truncated,
-            t_in_episode: t,
-        });
-        window.push(&obs, &action);
-        (obs, t) = if out.done() {
-            window.clear();
-            (env.reset().to_vec(), 0)
-        } else {
-            (out.obs.to_vec(), t + 1)
-        };
-    }
-    replay
+    common::filled_replay(config, net, steps, seed, act)
 }
 
 fn random_replay(net: &NetConfig) -> ReplayBuffer {

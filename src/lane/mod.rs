@@ -5,12 +5,11 @@
 //!
 //! Data one way: physics ([`crate::env`]) → damage → policy → lane → sinks → front-ends.
 
-use rand::Rng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use std::path::{Path, PathBuf};
-
 use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use crate::config::{DamageConfig, EnvConfig, GaitConfig};
@@ -20,7 +19,6 @@ use crate::env::{
 };
 use crate::policy::{ActionMode, Policy};
 use crate::window::ContextWindow;
-use rand::SeedableRng;
 
 #[derive(Debug, thiserror::Error)]
 pub enum LaneError {
@@ -80,7 +78,7 @@ pub enum Actor {
 }
 
 impl Actor {
-    /// Loads a checkpoint folder (its policy; see [`Self::with_probe`] for its probe).
+    /// Loads a checkpoint folder (its policy; see [`Self::with_readout`] for a probe).
     pub fn load(dir: &Path) -> Result<Self, crate::policy::checkpoint::CheckpointError> {
         Ok(Self::from_policy(dir, Policy::load(dir, None)?))
     }

@@ -152,11 +152,6 @@ impl Lane {
     pub fn is_done(&self) -> bool {
         self.core.is_done()
     }
-    /// The damage events of the latest step: its triggers, and the edits that took effect with
-    /// it (an event's `step` is the first step it shapes).
-    pub fn step_events(&self) -> &[crate::damage::DamageEvent] {
-        self.core.last().map_or(&[], |r| &r.events)
-    }
     /// The probe's P(damaged) per joint before the latest step.
     pub fn probe_before(&self) -> Option<&[f64; N_ACTUATORS]> {
         self.probe_before.as_ref()

@@ -269,3 +269,46 @@ pub fn save_checkpoint_in_world(dir: &std::path::Path, threshold: f64, context_l
     };
     model.save(dir, &record).unwrap();
 }
+
+/// A replay buffer filled by `steps` env steps of `act` (given the observation and the window)
+/// in the world `config`, reset with `seed`, windows of `net`'s length.
+pub fn filled_replay(
+    config: gaitscope::GaitConfig,
+    net: &gaitscope::policy::NetConfig,
+    steps: usize,
+    seed: u64,
+    mut act: impl FnMut(&[f64], &[f32]) -> Vec<f64>,
+) -> gaitscope::train::replay::ReplayBuffer {
+    use gaitscope::train::replay::{ReplayBuffer, Transition};
+    let window_len = if net.encoder.uses_window() {
+        net.context_len
+    } else {
+        0
+    };
+    let mut replay = ReplayBuffer::new(steps, net.obs_dim, net.act_dim, window_len);
+    let mut env = gaitscope::AntEnv::new(config, seed).unwrap();
+    let mut window = gaitscope::ContextWindow::new(net.context_len);
+    let mut obs = env.reset_with_seed(seed).to_vec();
+    let mut t = 0;
+    for _ in 0..steps {
+        let action = act(&obs, window.as_slice());
+        let out = env.step(&action).unwrap();
+        replay.push(Transition {
+            obs: &obs,
+            action: &action,
+            reward: out.reward.total,
+            next_obs: &out.obs,
+            terminated: out.terminated,
+            truncated: out.truncated,
+            t_in_episode: t,
+        });
+        window.push(&obs, &action);
+        (obs, t) = if out.done() {
+            window.clear();
+            (env.reset().to_vec(), 0)
+        } else {
+            (out.obs.to_vec(), t + 1)
+        };
+    }
+    replay
+}
