@@ -15,7 +15,8 @@ use std::path::{Path, PathBuf};
 
 use crate::config::{ConfigError, GaitConfig};
 use crate::damage::{
-    Condition, ConditionChoice, DamageError, DamageState, JointOverride, N_ACTUATORS,
+    Condition, ConditionChoice, DamageError, DamageState, Edit, JointOverride, N_ACTUATORS, Push,
+    PushRecord,
 };
 
 /// Observation: qpos[2..15] (13), qvel (14), goal − torso_xy (2).
@@ -62,6 +63,8 @@ pub enum EnvError {
     Config(#[from] ConfigError),
     #[error(transparent)]
     Scenario(#[from] crate::damage::scenario::ScenarioError),
+    #[error("unknown body '{name}' to push (the model's bodies: {known})")]
+    NoSuchBody { name: String, known: String },
 }
 
 /// One actuator's place in the model: actuator → joint → body.
@@ -160,6 +163,26 @@ pub struct AntEnv {
     unstable_warnings: i32,
     /// This episode's schedule, when the config names a scenario.
     plan: Option<crate::damage::scenario::ScenarioPlan>,
+    /// The model's named bodies (id order), what a push may name.
+    bodies: Vec<(String, usize)>,
+    /// Pushes still to act, and those that acted during the last step.
+    pushes: Pushes,
+}
+
+/// A push applied and not yet over.
+#[derive(Debug, Clone, PartialEq)]
+struct ActivePush {
+    push: Push,
+    body: usize,
+    start: usize,
+    remaining: usize,
+    source: Option<String>,
+}
+
+#[derive(Debug, Clone, Default, PartialEq)]
+struct Pushes {
+    active: Vec<ActivePush>,
+    last_step: Vec<PushRecord>,
 }
 
 /// Everything that decides an env's future, restorable exactly: MuJoCo's integration state
@@ -175,6 +198,7 @@ pub struct EnvSnapshot {
     last_xy: [f64; 2],
     done: bool,
     plan: Option<crate::damage::scenario::ScenarioPlan>,
+    pushes: Pushes,
 }
 
 impl EnvSnapshot {
@@ -182,6 +206,36 @@ impl EnvSnapshot {
     pub fn steps(&self) -> usize {
         self.steps
     }
+}
+
+/// An env between two steps, in named numbers (a saved state file's core): what decides the
+/// next steps given the actions. MuJoCo's integration state for the Ant is time, qpos, qvel and
+/// the solver's warm start (no activations, mocap or user data); the torso position the
+/// next step's progress is measured from; damage; pushes still acting. The RNG and a scenario's
+/// later edits are not part of it (they shape resets and scenarios, not the physics).
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnvSave {
+    pub step: usize,
+    pub time: f64,
+    pub qpos: Vec<f64>,
+    pub qvel: Vec<f64>,
+    pub qacc_warmstart: Vec<f64>,
+    /// The torso xy the next step's forward velocity and progress start from.
+    pub torso_xy: [f64; 2],
+    pub goal_distance: f64,
+    pub damage: crate::damage::DamageSave,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pushes: Vec<PendingPush>,
+}
+
+/// A push still to act for `remaining` steps.
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PendingPush {
+    pub push: Push,
+    pub start: usize,
+    pub remaining: usize,
 }
 
 /// `mjSTATE_INTEGRATION`: FULLPHYSICS leaves out the warm start, which changes the solver's
@@ -200,6 +254,12 @@ impl AntEnv {
         let dt = physics.model().opt().timestep * config.env.frame_skip as f64;
         let joint_names = std::array::from_fn(|i| ant.actuators[i].joint.clone());
         let damage = DamageState::new(config.damage.clone(), joint_names);
+        let bodies = (1..physics.model().nbody() as usize)
+            .filter_map(|b| {
+                let name = physics.model().id_to_name(MjtObjBase::mjOBJ_BODY, b)?;
+                (!name.is_empty()).then(|| (name.to_string(), b))
+            })
+            .collect();
         let mut env = Self {
             config,
             physics,
@@ -220,6 +280,8 @@ impl AntEnv {
             done: true,
             unstable_warnings: 0,
             plan: None,
+            bodies,
+            pushes: Pushes::default(),
         };
         if let Some(scenario) = &env.config.damage.scenario {
             scenario.check(&env.joint_map())?;
@@ -292,6 +354,7 @@ impl AntEnv {
             self.plan = scenario.plan(seed, &self.joint_map()).ok();
         }
         self.damage.reset(condition);
+        self.pushes = Pushes::default();
         self.steps = 0;
         self.done = false;
         self.unstable_warnings = self.divergence_warnings();
@@ -312,6 +375,7 @@ impl AntEnv {
             last_xy: self.last_xy,
             done: self.done,
             plan: self.plan.clone(),
+            pushes: self.pushes.clone(),
         }
     }
 
@@ -332,9 +396,100 @@ impl AntEnv {
         self.last_xy = snapshot.last_xy;
         self.done = snapshot.done;
         self.plan = snapshot.plan.clone();
+        self.pushes = snapshot.pushes.clone();
         // Only warnings raised by later steps count as divergence.
         self.unstable_warnings = self.divergence_warnings();
         Ok(())
+    }
+
+    /// The state between steps, to start another episode from (see [`EnvSave`]).
+    pub fn save(&self) -> EnvSave {
+        EnvSave {
+            step: self.steps,
+            time: self.physics.time(),
+            qpos: self.physics.qpos().to_vec(),
+            qvel: self.physics.qvel().to_vec(),
+            qacc_warmstart: self.physics.qacc_warmstart().to_vec(),
+            torso_xy: self.last_xy,
+            goal_distance: self.prev_distance,
+            damage: self.damage.save(),
+            pushes: self
+                .pushes
+                .active
+                .iter()
+                .map(|p| PendingPush {
+                    push: p.push.clone(),
+                    start: p.start,
+                    remaining: p.remaining,
+                })
+                .collect(),
+        }
+    }
+
+    /// Starts an episode from a saved state: stepping on with the same actions repeats what
+    /// followed it. Every number is checked first; on an error the env is left as it was.
+    pub fn start_from_save(&mut self, saved: &EnvSave) -> Result<Observation, EnvError> {
+        check_state_vector("qpos", &saved.qpos, NQ)?;
+        check_state_vector("qvel", &saved.qvel, NV)?;
+        check_state_vector("qacc_warmstart", &saved.qacc_warmstart, NV)?;
+        check_state_vector(
+            "time, torso_xy, goal_distance",
+            &[
+                saved.time,
+                saved.torso_xy[0],
+                saved.torso_xy[1],
+                saved.goal_distance,
+            ],
+            4,
+        )?;
+        if saved.step >= self.config.env.max_episode_steps {
+            return Err(EnvError::BadState(format!(
+                "the state is at step {}, at or past this episode's step limit {}",
+                saved.step, self.config.env.max_episode_steps
+            )));
+        }
+        let mut damage = self.damage.clone();
+        damage.restore_save(&saved.damage)?;
+        let mut active = Vec::with_capacity(saved.pushes.len());
+        for p in &saved.pushes {
+            let checked = Push::new(&p.push.body, p.push.force, p.push.steps)
+                .map_err(|e| EnvError::BadState(e.to_string()))?;
+            if !(1..=checked.steps).contains(&p.remaining) {
+                return Err(EnvError::BadState(format!(
+                    "a pending push has {} steps left of its {}",
+                    p.remaining, checked.steps
+                )));
+            }
+            active.push(ActivePush {
+                body: self.body_id(&checked.body)?,
+                push: checked,
+                start: p.start,
+                remaining: p.remaining,
+                source: None,
+            });
+        }
+        // Gymnasium's set_state (mj_resetData, state, mj_forward), with the warm start and time.
+        self.physics.reset();
+        self.physics.qpos_mut().copy_from_slice(&saved.qpos);
+        self.physics.qvel_mut().copy_from_slice(&saved.qvel);
+        self.physics
+            .qacc_warmstart_mut()
+            .copy_from_slice(&saved.qacc_warmstart);
+        self.physics.set_time(saved.time);
+        self.physics.forward();
+        self.physics.rne_post_constraint();
+        self.damage = damage;
+        self.plan = None;
+        self.pushes = Pushes {
+            active,
+            last_step: Vec::new(),
+        };
+        self.steps = saved.step;
+        self.done = false;
+        self.unstable_warnings = self.divergence_warnings();
+        self.last_xy = saved.torso_xy;
+        self.prev_distance = saved.goal_distance;
+        Ok(self.observation())
     }
 
     /// Advances one env step (frame_skip physics steps) with `action` in [−1, 1]⁸.
@@ -350,14 +505,26 @@ impl AntEnv {
                 self.damage
                     .apply_change(self.steps, actuator, change, Some(&name))?;
             }
+            for push in plan.pushes_before(self.steps) {
+                self.start_push(push, Some(&name))?;
+            }
         }
         let applied = self.damage.applied_action(&commanded);
         let xy_before = self.last_xy;
 
         self.physics.ctrl_mut().copy_from_slice(&applied);
+        // Pushes act through every substep of this env step, then the force is gone again (so
+        // a snapshot never holds one: the active list is the state).
+        for p in &self.pushes.active {
+            let f = &mut self.physics.xfrc_applied_mut()[p.body];
+            for k in 0..3 {
+                f[k] += p.push.force[k];
+            }
+        }
         for _ in 0..self.config.env.frame_skip {
             self.physics.step();
         }
+        self.end_push_step();
         // cfrc_ext is only filled on request; it depends on the final state alone, so once per
         // env step gives the same fatigue as once per substep (and is what Gymnasium does).
         self.physics.rne_post_constraint();
@@ -423,9 +590,80 @@ impl AntEnv {
         Ok(self.damage.apply_override(self.steps, actuator, change)?)
     }
 
-    /// Applies a damage edit (a joint by name, or all); it takes effect on the next step.
-    pub fn apply_edit(&mut self, edit: &crate::damage::DamageEdit) -> Result<(), EnvError> {
-        Ok(self.damage.apply_edit(self.steps, edit)?)
+    /// Applies an edit (joints' damage, or a push); it takes effect on the next step.
+    pub fn apply_edit(&mut self, edit: &Edit) -> Result<(), EnvError> {
+        match edit {
+            Edit::Joint(e) => Ok(self.damage.apply_edit(self.steps, e)?),
+            Edit::Push(p) => self.start_push(p.clone(), None),
+        }
+    }
+
+    /// Checks that `edit` names a joint or body of this model, changing nothing.
+    pub fn check_edit(&self, edit: &Edit) -> Result<(), EnvError> {
+        match edit {
+            Edit::Joint(e) => self
+                .damage
+                .resolve(&e.target)
+                .map(|_| ())
+                .map_err(Into::into),
+            Edit::Push(p) => self.body_id(&p.body).map(|_| ()),
+        }
+    }
+
+    /// The model's named bodies, what a push may name.
+    pub fn body_names(&self) -> Vec<&str> {
+        self.bodies.iter().map(|(n, _)| n.as_str()).collect()
+    }
+
+    fn body_id(&self, name: &str) -> Result<usize, EnvError> {
+        self.bodies
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|&(_, b)| b)
+            .ok_or_else(|| EnvError::NoSuchBody {
+                name: name.to_string(),
+                known: self.body_names().join(", "),
+            })
+    }
+
+    /// A push acting from the next step on, for its number of steps.
+    fn start_push(&mut self, push: Push, source: Option<&str>) -> Result<(), EnvError> {
+        let body = self.body_id(&push.body)?;
+        self.pushes.active.push(ActivePush {
+            body,
+            start: self.steps,
+            remaining: push.steps,
+            source: source.map(str::to_string),
+            push,
+        });
+        Ok(())
+    }
+
+    /// After a step's physics: the pushes that acted are recorded (at their body's centre of
+    /// mass now), the applied forces cleared, and spent pushes dropped.
+    fn end_push_step(&mut self) {
+        self.pushes.last_step.clear();
+        for p in &mut self.pushes.active {
+            self.physics.xfrc_applied_mut()[p.body] = [0.0; 6];
+            self.pushes.last_step.push(PushRecord {
+                push: p.push.clone(),
+                start: p.start,
+                point: self.physics.xipos()[p.body],
+                source: p.source.clone(),
+            });
+            p.remaining -= 1;
+        }
+        self.pushes.active.retain(|p| p.remaining > 0);
+    }
+
+    /// The pushes that acted during the last step.
+    pub fn last_pushes(&self) -> &[PushRecord] {
+        &self.pushes.last_step
+    }
+
+    /// Pushes applied and not yet over (they act from the next step on).
+    pub fn pushes_pending(&self) -> usize {
+        self.pushes.active.len()
     }
 
     /// The current observation (what the last reset or step returned).
@@ -470,6 +708,7 @@ impl AntEnv {
             joints: self.damage.joint_names().to_vec(),
             legs: self.leg_names.to_vec(),
             leg_of: self.leg_of_actuator.to_vec(),
+            bodies: self.body_names().iter().map(|n| n.to_string()).collect(),
         }
     }
 

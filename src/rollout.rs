@@ -2,7 +2,8 @@
 //!
 //! Replay is how anyone checks our physics against another implementation (e.g. Gymnasium's
 //! Ant-v4), so its file formats are fixed:
-//! - init state: `{"qpos": [15 numbers], "qvel": [14 numbers]}`
+//! - init state: `{"qpos": [15 numbers], "qvel": [14 numbers]}` (or a saved state,
+//!   [`crate::lane::SavedState`]: the actions then start at its step)
 //! - actions: `[[8 numbers], ...]`
 //! - output: one [`StepLine`] JSON object per line, the state after step `t`.
 
@@ -11,7 +12,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::damage::{Condition, N_ACTUATORS};
-use crate::env::{ACT_DIM, Action, AntEnv, EnvError, NQ, NV, StepOutcome};
+use crate::env::{ACT_DIM, Action, AntEnv, EnvError, StepOutcome};
+use crate::lane::StartState;
 
 pub use crate::lane::{BuiltinPolicy, policy_rng};
 
@@ -152,6 +154,9 @@ pub struct StepLine {
     /// Per leg (front_left, front_right, back, right_back: the model's body order), whether its
     /// foot touches the floor.
     pub contacts: [bool; crate::env::N_LEGS],
+    /// The pushes that acted during this step (left out when none did).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pushes: Vec<crate::damage::PushRecord>,
 }
 
 impl From<&crate::lane::StepRecord> for StepLine {
@@ -170,16 +175,9 @@ impl From<&crate::lane::StepRecord> for StepLine {
             contacts: r.contacts,
             qpos: r.qpos.clone(),
             qvel: r.qvel.clone(),
+            pushes: r.pushes.clone(),
         }
     }
-}
-
-/// The starting state of a replay.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct InitState {
-    pub qpos: Vec<f64>,
-    pub qvel: Vec<f64>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -206,6 +204,16 @@ pub enum ReplayError {
     ForkBeyondEpisode { at: usize, steps: usize },
     #[error(transparent)]
     Lane(#[from] crate::lane::LaneError),
+    #[error(
+        "a bare initial state (qpos, qvel) needs --condition healthy|mild|severe (the damage scale must be explicit)"
+    )]
+    NeedsCondition,
+    #[error(
+        "the saved state's condition is {saved}, not {asked}: its damage state belongs to it (leave --condition out)"
+    )]
+    ConditionConflict { saved: Condition, asked: Condition },
+    #[error("the episode ended after {steps} steps, before step {at}: no state to save")]
+    SaveBeyondEpisode { at: usize, steps: usize },
 }
 
 fn read_json<T: serde::de::DeserializeOwned>(
@@ -225,28 +233,41 @@ fn read_json<T: serde::de::DeserializeOwned>(
     })
 }
 
-/// Reads `{"qpos": [15], "qvel": [14]}` and checks lengths and finiteness.
-pub fn read_init_state(path: &Path) -> Result<InitState, ReplayError> {
-    const WHAT: &str = "init-state";
-    let state: InitState = read_json(
-        WHAT,
-        path,
-        "{\"qpos\": [15 numbers], \"qvel\": [14 numbers]}",
-    )?;
-    let malformed = |reason: String| ReplayError::Malformed {
-        what: WHAT,
-        path: path.to_owned(),
-        reason,
-    };
-    for (name, values, n) in [("qpos", &state.qpos, NQ), ("qvel", &state.qvel, NV)] {
-        if values.len() != n {
-            return Err(malformed(format!(
-                "{name} has {} numbers, expected {n}",
-                values.len()
-            )));
+/// Reads an initial state: a saved state (`--save-state-at`), or a replay's bare
+/// `{"qpos": [15], "qvel": [14]}`; lengths and finiteness checked.
+pub fn read_init_state(path: &Path) -> Result<StartState, ReplayError> {
+    StartState::read(path).map_err(|e| match e {
+        crate::lane::StateFileError::Read { path, source } => ReplayError::Read {
+            what: "init-state",
+            path,
+            source,
+        },
+        crate::lane::StateFileError::Malformed { path, reason } => ReplayError::Malformed {
+            what: "init-state",
+            path,
+            reason,
+        },
+    })
+}
+
+/// Starts `lane` from `init`: a saved state under its own condition (a different `condition`
+/// is refused), a bare one under `condition`, which it then needs.
+fn start_lane_from(
+    lane: &mut crate::lane::Lane,
+    init: &StartState,
+    condition: Option<Condition>,
+) -> Result<(), ReplayError> {
+    match (init, init.condition(), condition) {
+        (StartState::Bare { qpos, qvel }, _, Some(c)) => lane.reset_to_state(qpos, qvel, c)?,
+        (StartState::Bare { .. }, _, None) => return Err(ReplayError::NeedsCondition),
+        (_, Some(saved), Some(asked)) if saved != asked => {
+            return Err(ReplayError::ConditionConflict { saved, asked });
+        }
+        (StartState::Saved(_), _, _) => {
+            lane.start_from(init)?;
         }
     }
-    Ok(state)
+    Ok(())
 }
 
 /// Reads `[[8 numbers], ...]` and checks every row.
@@ -285,19 +306,27 @@ pub fn read_actions(path: &Path) -> Result<Vec<Action>, ReplayError> {
 /// the episode ends; returns the steps replayed.
 pub fn replay(
     config: &crate::config::GaitConfig,
-    init: &InitState,
-    condition: Condition,
+    init: &StartState,
+    condition: Option<Condition>,
     actions: &[Action],
     mut sink: impl FnMut(&StepLine) -> std::io::Result<()>,
 ) -> Result<usize, ReplayError> {
     let actor = crate::lane::Actor::Scripted(actions.into());
     let mut lane = crate::lane::Lane::unstarted(&actor, config, 0)?;
-    lane.reset_to_state(&init.qpos, &init.qvel, condition)?;
-    while !lane.is_done() && lane.steps() < actions.len() {
+    start_lane_from(&mut lane, init, condition)?;
+    // A saved state starts at its step; the actions are those from there on.
+    let first = lane.steps();
+    let actor = crate::lane::Actor::Scripted(
+        (0..first)
+            .map(|_| [0.0; ACT_DIM])
+            .chain(actions.iter().copied())
+            .collect(),
+    );
+    while !lane.is_done() && lane.steps() < first + actions.len() {
         let record = lane.advance(&actor, crate::policy::ActionMode::Deterministic)?;
         sink(&StepLine::from(record)).map_err(ReplayError::Write)?;
     }
-    Ok(lane.steps())
+    Ok(lane.steps() - first)
 }
 
 /// One line of a policy rollout: the replay record, the lane it belongs to (`main`, or `fork`
@@ -332,8 +361,17 @@ pub use crate::lane::Fork;
 #[derive(Debug, Clone, Copy)]
 pub enum Start<'a> {
     Reset,
-    /// From `init` (set, then `mj_forward`, as replay does) under `condition`.
-    State(&'a InitState, Condition),
+    /// From a state file (see [`read_init_state`]); a bare state under `condition`.
+    State(&'a StartState, Option<Condition>),
+}
+
+/// A policy episode's outcome: the main lane's summary, the fork's, and the state saved
+/// before step `save_at` (when asked).
+#[derive(Debug, Clone)]
+pub struct PolicyEpisode {
+    pub summary: EpisodeSummary,
+    pub fork: Option<EpisodeSummary>,
+    pub saved: Option<crate::lane::SavedState>,
 }
 
 /// A deterministic episode of `actor` in its world (see [`crate::lane::Actor::world`]) from
@@ -349,8 +387,9 @@ pub fn run_policy_episode(
     seed: u64,
     start: Start,
     fork: Option<&Fork>,
+    save_at: Option<usize>,
     mut sink: impl FnMut(&LaneRecord) -> std::io::Result<()>,
-) -> Result<(EpisodeSummary, Option<EpisodeSummary>), ReplayError> {
+) -> Result<PolicyEpisode, ReplayError> {
     use crate::lane::Lane;
     let mode = crate::policy::ActionMode::Deterministic;
     if let Some(fork) = fork {
@@ -359,32 +398,52 @@ pub fn run_policy_episode(
     }
     let mut lane = Lane::new(actor, requested, seed)?;
     if let Start::State(init, condition) = start {
-        lane.reset_to_state(&init.qpos, &init.qvel, condition)?;
+        start_lane_from(&mut lane, init, condition)?;
     }
+    let checkpoint = actor.checkpoint_dir().map(|_| actor.label());
+    let mut saved = None;
     // Steps the lane to its episode's end, each step's line to `sink`; the return.
-    let mut run =
-        |lane: &mut Lane, name: &'static str, stop_at: Option<usize>| -> Result<f64, ReplayError> {
-            let mut episode_return = 0.0;
-            while !lane.is_done() && stop_at.is_none_or(|k| lane.steps() < k) {
-                let record = lane.advance(actor, mode)?;
-                episode_return += record.outcome.reward.total;
-                sink(&LaneRecord::new(episode, seed, name, record)).map_err(ReplayError::Write)?;
+    let mut run = |lane: &mut Lane,
+                   name: &'static str,
+                   stop_at: Option<usize>,
+                   saved: &mut Option<crate::lane::SavedState>|
+     -> Result<f64, ReplayError> {
+        let mut episode_return = 0.0;
+        while !lane.is_done() && stop_at.is_none_or(|k| lane.steps() < k) {
+            if save_at == Some(lane.steps()) && name == "main" {
+                *saved = Some(lane.save_state(seed, checkpoint.clone()));
             }
-            Ok(episode_return)
-        };
-    let before = run(&mut lane, "main", fork.map(|f| f.at))?;
+            let record = lane.advance(actor, mode)?;
+            episode_return += record.outcome.reward.total;
+            sink(&LaneRecord::new(episode, seed, name, record)).map_err(ReplayError::Write)?;
+        }
+        Ok(episode_return)
+    };
+    let before = run(&mut lane, "main", fork.map(|f| f.at), &mut saved)?;
     let branch = fork
         .filter(|f| !lane.is_done() && lane.steps() == f.at)
         .map(|f| lane.fork(&f.edits))
         .transpose()?;
-    let after = run(&mut lane, "main", None)?;
+    let after = run(&mut lane, "main", None, &mut saved)?;
     let last = lane
         .outcome()
         .cloned()
         .ok_or_else(|| ReplayError::Env(EnvError::BadState("the episode took no step".into())))?;
     let summary = summarize(lane.env(), episode, seed, &last, before + after);
+    if let Some(at) = save_at
+        && saved.is_none()
+    {
+        return Err(ReplayError::SaveBeyondEpisode {
+            at,
+            steps: summary.steps,
+        });
+    }
     let Some(f) = fork else {
-        return Ok((summary, None));
+        return Ok(PolicyEpisode {
+            summary,
+            fork: None,
+            saved,
+        });
     };
     let Some(mut fork_lane) = branch else {
         return Err(ReplayError::ForkBeyondEpisode {
@@ -392,7 +451,7 @@ pub fn run_policy_episode(
             steps: summary.steps,
         });
     };
-    let fork_return = run(&mut fork_lane, "fork", None)?;
+    let fork_return = run(&mut fork_lane, "fork", None, &mut None)?;
     let fork_last = fork_lane
         .outcome()
         .cloned()
@@ -405,5 +464,9 @@ pub fn run_policy_episode(
         before + fork_return,
     );
     fork_summary.lane = Some("fork".into());
-    Ok((summary, Some(fork_summary)))
+    Ok(PolicyEpisode {
+        summary,
+        fork: Some(fork_summary),
+        saved,
+    })
 }

@@ -404,11 +404,7 @@ impl VideoLane {
     }
 
     /// A second lane from this one's exact state with `edits` applied (a counterfactual fork).
-    pub fn fork(
-        &self,
-        edits: &[crate::damage::DamageEdit],
-        spec: FrameSpec,
-    ) -> Result<Self, VideoError> {
+    pub fn fork(&self, edits: &[crate::damage::Edit], spec: FrameSpec) -> Result<Self, VideoError> {
         let lane = self
             .lane
             .fork(edits)

@@ -3,7 +3,7 @@
 //! bit, a fork runs beside the main lane, and the stream carries all of it.
 
 use gaitscope::app::{Breakpoint, Command, LIVE_ROOTS, LiveCondition, LiveSetup, SimHandle};
-use gaitscope::damage::{ConditionChoice, DamageEdit, JointOverride};
+use gaitscope::damage::{ConditionChoice, Edit, JointOverride};
 use gaitscope::policy::{ActionMode, Policy};
 use gaitscope::telemetry::{Sink, open};
 use gaitscope::{AntEnv, Condition, ContextWindow, GaitConfig};
@@ -289,7 +289,7 @@ fn a_heal_all_fork_runs_beside_the_unchanged_main_lane() {
     let reference = reference(0);
     let (sim, storage) = spawn(0, vec![Breakpoint::Step(40), Breakpoint::Step(60)]);
     assert_eq!(run_to_break(&sim), 40);
-    assert!(sim.send(Command::Fork(DamageEdit::parse_list("heal:all").unwrap())));
+    assert!(sim.send(Command::Fork(Edit::parse_list("heal:all").unwrap())));
     let s = sim.wait_for(WAIT, |s| s.lanes.len() == 2);
     assert_eq!(s.lanes[1].root, "fork");
     assert!(
@@ -358,7 +358,7 @@ fn a_recording_holds_the_fork_lane() {
         sink: Sink::Memory,
         fork: Some(Fork {
             at: 30,
-            edits: DamageEdit::parse_list("fail:hip_1").unwrap(),
+            edits: Edit::parse_list("fail:hip_1").unwrap(),
         }),
     };
     let stop = std::sync::atomic::AtomicBool::new(false);

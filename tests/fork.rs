@@ -56,6 +56,26 @@ fn a_fork_with_no_edit_repeats_the_main_lane_bit_for_bit() {
     }
 }
 
+/// A push of zero newtons through the CLI is `--fork none`, bit for bit (its lines only say
+/// which push acted).
+#[test]
+fn a_zero_push_fork_is_a_fork_with_no_edit() {
+    let none = rollout(&["--fork-at", "12", "--fork", "none"]).unwrap();
+    let zero = rollout(&["--fork-at", "12", "--fork", "push:torso=0,0,0@5"]).unwrap();
+    assert_eq!(none.len(), zero.len());
+    let mut pushed = 0;
+    for (a, b) in none.iter().zip(&zero) {
+        let mut b = b.clone();
+        if let Some(p) = b.as_object_mut().unwrap().remove("pushes") {
+            assert_eq!(b["lane"], "fork");
+            assert_eq!(p[0]["push"]["body"], "torso");
+            pushed += 1;
+        }
+        assert_eq!(*a, b);
+    }
+    assert_eq!(pushed, 5, "the push acts for its 5 steps");
+}
+
 #[test]
 fn a_heal_all_fork_applies_what_it_commands_and_leaves_the_main_lane_alone() {
     let plain = rollout(&[]).unwrap();
@@ -116,6 +136,22 @@ fn bad_forks_are_clear_errors() {
             "is beyond the episode",
         ),
         (vec!["--fork-at", "5"], "--fork"),
+        (
+            vec!["--fork-at", "5", "--fork", "push:tail=1,0,0"],
+            "unknown body 'tail' to push",
+        ),
+        (
+            vec!["--fork-at", "5", "--fork", "push:torso=inf,0,0"],
+            "must be three finite numbers",
+        ),
+        (
+            vec!["--fork-at", "5", "--fork", "push:torso=0,4000,0@2"],
+            "4000 N is more than the 1000 N",
+        ),
+        (
+            vec!["--fork-at", "5", "--fork", "push:torso=0,40"],
+            "bad push 'push:torso=0,40'",
+        ),
     ] {
         let err = rollout(&args).unwrap_err();
         assert!(err.contains(message), "{args:?}: {err}");
@@ -319,7 +355,7 @@ fn every_front_end_refuses_a_bad_fork_before_any_step() {
             breakpoints: Vec::new(),
             fork: Some(gaitscope::rollout::Fork {
                 at: at.parse().unwrap(),
-                edits: gaitscope::damage::DamageEdit::parse_list(edits).unwrap(),
+                edits: gaitscope::damage::Edit::parse_list(edits).unwrap(),
             }),
             config: gaitscope::GaitConfig::default(),
         };

@@ -531,3 +531,63 @@ fn compared_models_have_their_own_leg_colours_names_and_hues() {
     let min_orange_red = hues[0].iter().map(|c| c[0]).min().unwrap();
     assert!(min_orange_red > max_blue_red, "{hues:?}");
 }
+
+/// A push is a PUSH event at its first step and an arrow while it acts, ending at the pushed
+/// body's centre of mass, cleared the step after (issue 32).
+#[test]
+fn a_push_is_an_event_and_an_arrow_while_it_acts() {
+    let scenario = gaitscope::damage::scenario::Scenario::from_json(
+        r#"{"name": "shove", "edits": [
+            {"step": 20, "push": {"body": "torso", "force": [0, 40, 0], "steps": 3}}]}"#,
+        "test",
+    )
+    .unwrap();
+    let mut opts = options(Sink::Memory);
+    opts.config.damage.scenario = Some(scenario);
+    let out = record(opts, &AtomicBool::new(false)).unwrap();
+    let chunks = chunks(out.storage.unwrap().take());
+    common::assert_no_static_shadowing(&chunks);
+    // Env step t is logged at global step t + 1.
+    let events = common::text_log(&chunks, "/ant/events");
+    let pushes: Vec<&(i64, String)> = events.iter().filter(|(_, t)| t.contains("push")).collect();
+    assert_eq!(
+        pushes,
+        [&(
+            21,
+            "step 21: scenario shove: push torso by (0, 40, 0) N for 3 steps".to_string()
+        )]
+    );
+    let level = rerun::TextLog::descriptor_level().component;
+    let levels = by_step(&chunks, "/ant/events", |c| {
+        c.iter_slices::<String>(level)
+            .map(|s| s.first().map(|v| v.to_string()).unwrap_or_default())
+            .collect()
+    });
+    assert_eq!(levels[&21], "PUSH");
+    let vectors = rerun::Arrows3D::descriptor_vectors().component;
+    let arrows = common::per_step(&chunks, "/ant/world/push", |c| {
+        c.iter_slices::<[f32; 3]>(vectors)
+            .map(|s| s.to_vec())
+            .collect()
+    });
+    let drawn: Vec<(i64, Vec<[f32; 3]>)> =
+        arrows.into_iter().filter(|(_, v)| !v.is_empty()).collect();
+    // 40 N at 50 N per metre: 0.8 m along +y, on env steps 20, 21, 22.
+    assert_eq!(
+        drawn,
+        (21..=23)
+            .map(|t| (t, vec![[0.0, 0.8, 0.0]]))
+            .collect::<Vec<_>>()
+    );
+    // Cleared at the next step: a Clear on the entity at step 24.
+    let cleared = chunks.iter().any(|c| {
+        c.entity_path().to_string() == "/ant/world/push"
+            && c.timelines()
+                .get(&"step".into())
+                .is_some_and(|t| t.times_raw().contains(&24))
+            && c.components()
+                .keys()
+                .any(|k| k.to_string().contains("Clear"))
+    });
+    assert!(cleared, "the arrow is cleared after the push");
+}

@@ -2,7 +2,7 @@
 //! rate, not blank, and the damage tint where the damage is.
 #![cfg(feature = "video")]
 
-use gaitscope::damage::DamageEdit;
+use gaitscope::damage::Edit;
 use gaitscope::video::{FrameRenderer, FrameSpec};
 use gaitscope::{AntEnv, GaitConfig};
 use std::process::Command;
@@ -42,7 +42,7 @@ fn frames_show_the_ant_and_its_damage() {
     let healthy = renderer.frame(&env).unwrap();
     assert_eq!(healthy.len(), 320 * 240 * 3);
     assert!(variance(&healthy) > 100.0, "not a blank frame");
-    for edit in DamageEdit::parse_list("fail:all=0.1").unwrap() {
+    for edit in Edit::parse_list("fail:all=0.1").unwrap() {
         env.apply_edit(&edit).unwrap();
     }
     env.step(&[0.0; 8]).unwrap();
@@ -215,7 +215,7 @@ fn compared_lanes_each_run_in_their_own_world() {
     }
     for (k, actor) in actors.iter().enumerate() {
         let mut alone = Vec::new();
-        run_policy_episode(actor, &requested, 0, 4, Start::Reset, None, |line| {
+        run_policy_episode(actor, &requested, 0, 4, Start::Reset, None, None, |line| {
             alone.push((line.record.fatigue, line.record.applied_action));
             Ok(())
         })

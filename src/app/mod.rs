@@ -112,6 +112,8 @@ pub enum Command {
         actuator: usize,
         change: JointOverride,
     },
+    /// Push every model's body (an external force for a few steps); logged as an event.
+    Push(crate::damage::Push),
     /// Condition of the next episode.
     SetCondition(LiveCondition),
     /// Seed of the next episode.
@@ -139,7 +141,7 @@ pub enum Command {
     /// Go back to the state after this many steps of the current episode (a new branch).
     Rewind(usize),
     /// Start a counterfactual lane of the main model from the current state with these edits.
-    Fork(Vec<crate::damage::DamageEdit>),
+    Fork(Vec<crate::damage::Edit>),
     /// Stop the fork lane.
     EndFork,
     /// Run this scenario from the next episode on (`None`: back to the condition alone).

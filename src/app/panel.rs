@@ -10,7 +10,7 @@ use eframe::egui::{self, Color32, RichText};
 
 use super::breakpoint::{Breakpoint, format_list};
 use super::{Command, LiveCondition, MAX_SPEED, MIN_SPEED, PanelStats, SimHandle, Slot, Snapshot};
-use crate::damage::DamageEdit;
+use crate::damage::Edit;
 use crate::damage::{JointOverride, JointState, N_ACTUATORS};
 use crate::policy::ActionMode;
 
@@ -67,6 +67,11 @@ pub struct Panel {
     scenario_text: String,
     save_text: String,
     scenario_error: Option<String>,
+    /// The push row: body, force (N, world frame), steps, and why the last push was refused.
+    push_body: String,
+    push_force: [f64; 3],
+    push_steps: usize,
+    push_error: Option<String>,
 }
 
 impl Panel {
@@ -87,6 +92,10 @@ impl Panel {
             scenario_text: String::new(),
             save_text: "scenarios/saved.json".into(),
             scenario_error: None,
+            push_body: "torso".into(),
+            push_force: [0.0, 40.0, 0.0],
+            push_steps: 5,
+            push_error: None,
         }
     }
 
@@ -373,6 +382,51 @@ impl Panel {
                     ui.end_row();
                 }
             });
+        self.push_row(ui, &lane.body_names);
+    }
+
+    /// Push a body of every model: an external force for a few steps (`push:BODY=F@N`).
+    fn push_row(&mut self, ui: &mut egui::Ui, bodies: &[String]) {
+        ui.horizontal(|ui| {
+            egui::ComboBox::from_id_salt("push body")
+                .selected_text(&self.push_body)
+                .width(110.0)
+                .show_ui(ui, |ui| {
+                    for b in bodies {
+                        ui.selectable_value(&mut self.push_body, b.clone(), b);
+                    }
+                });
+            for (axis, f) in ["x", "y", "z"].iter().zip(&mut self.push_force) {
+                ui.add(
+                    egui::DragValue::new(f)
+                        .prefix(format!("{axis} "))
+                        .suffix(" N")
+                        .speed(1.0)
+                        .range(-crate::damage::MAX_PUSH_NEWTONS..=crate::damage::MAX_PUSH_NEWTONS),
+                );
+            }
+            ui.add(
+                egui::DragValue::new(&mut self.push_steps)
+                    .range(1..=crate::damage::MAX_PUSH_STEPS)
+                    .suffix(" steps"),
+            );
+            if ui
+                .button("Push")
+                .on_hover_text("an external force on the body's centre of mass, world frame")
+                .clicked()
+            {
+                match crate::damage::Push::new(&self.push_body, self.push_force, self.push_steps) {
+                    Ok(push) => {
+                        self.push_error = None;
+                        self.send(Command::Push(push));
+                    }
+                    Err(e) => self.push_error = Some(e.to_string()),
+                }
+            }
+        });
+        if let Some(e) = &self.push_error {
+            ui.colored_label(Color32::from_rgb(230, 90, 60), e);
+        }
     }
 
     /// Breakpoints, time travel and forks.
@@ -469,7 +523,7 @@ impl Panel {
                 )
                 .clicked()
             {
-                match DamageEdit::parse_list(&self.fork_text) {
+                match Edit::parse_list(&self.fork_text) {
                     Ok(edits) => {
                         self.fork_error = None;
                         self.send(Command::Fork(edits));

@@ -124,6 +124,8 @@ pub struct LaneView {
     /// How the episode ended ("success", "fell", "timeout", …), once it has.
     pub ending: Option<&'static str>,
     pub joint_names: [String; N_ACTUATORS],
+    /// The model's named bodies, what a push may name.
+    pub body_names: Vec<String>,
     /// The leg each joint moves (the gait view's lane names: `front_left_leg`, …).
     pub joint_legs: [String; N_ACTUATORS],
     pub fatigue: [f64; N_ACTUATORS],
@@ -163,6 +165,7 @@ impl LaneView {
             done: lane.is_done(),
             ending: last.and_then(crate::env::StepOutcome::ending),
             joint_names: damage.joint_names().clone(),
+            body_names: env.body_names().iter().map(|n| n.to_string()).collect(),
             joint_legs: std::array::from_fn(|i| env.leg_names()[env.leg_of_actuator()[i]].clone()),
             fatigue: *damage.fatigue(),
             threshold: damage.config().threshold,
@@ -608,6 +611,7 @@ impl Sim {
                 .session
                 .apply_override(actuator, change)
                 .map_err(LiveError::from),
+            Command::Push(push) => self.session.push(&push).map_err(LiveError::from),
             Command::SetCondition(c) => {
                 self.condition = c;
                 Ok(())

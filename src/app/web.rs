@@ -21,7 +21,7 @@ use serde::Deserialize;
 use serde_json::{Value, json};
 
 use super::{Breakpoint, Command, LiveCondition, MAX_SPEED, MIN_SPEED, SimHandle, Slot, Snapshot};
-use crate::damage::{DamageEdit, JointState};
+use crate::damage::{Edit, JointState, Push};
 use crate::policy::ActionMode;
 
 /// The control page: static HTML and JS, no build step.
@@ -556,9 +556,17 @@ pub enum WebRequest {
     StepLimit {
         value: usize,
     },
-    /// Damage edits in the CLI's syntax (`fail:ankle_3`, `scale:hip_1=0.4`, `heal:all`).
+    /// Edits in the CLI's syntax (`fail:ankle_3`, `scale:hip_1=0.4`, `heal:all`,
+    /// `push:torso=0,40,0@5`).
     Edit {
         edit: String,
+    },
+    /// An external force (newtons, world frame) on a body for `steps` env steps.
+    Push {
+        body: String,
+        force: [f64; 3],
+        #[serde(default = "one")]
+        steps: usize,
     },
     Sampled {
         on: bool,
@@ -609,10 +617,26 @@ pub fn commands(
             .map(|l| l.joint_names.clone())
             .ok_or_else(|| "no model is loaded".to_string())
     };
-    // An edit list, its joints checked by name: the parser and resolver the CLI uses.
-    let parse_edits = |text: &str| -> Result<Vec<DamageEdit>, String> {
+    let check_body = |push: &Push| -> Result<(), String> {
+        let bodies = snapshot
+            .lanes
+            .first()
+            .map(|l| l.body_names.clone())
+            .ok_or_else(|| "no model is loaded".to_string())?;
+        if bodies.contains(&push.body) {
+            Ok(())
+        } else {
+            Err(format!(
+                "unknown body '{}' to push (the model's bodies: {})",
+                push.body,
+                bodies.join(", ")
+            ))
+        }
+    };
+    // An edit list, its joints and bodies checked by name: the parser and resolver the CLI uses.
+    let parse_edits = |text: &str| -> Result<Vec<Edit>, String> {
         let names = joint_names()?;
-        let edits = DamageEdit::parse_list(text).map_err(|e| e.to_string())?;
+        let edits = Edit::parse_list(text).map_err(|e| e.to_string())?;
         if edits.len() > MAX_EDITS_PER_REQUEST {
             return Err(format!(
                 "{} edits in one request; at most {MAX_EDITS_PER_REQUEST}",
@@ -620,7 +644,14 @@ pub fn commands(
             ));
         }
         for edit in &edits {
-            edit.target.resolve(&names).map_err(|e| e.to_string())?;
+            match edit {
+                Edit::Joint(e) => e
+                    .target
+                    .resolve(&names)
+                    .map(|_| ())
+                    .map_err(|e| e.to_string())?,
+                Edit::Push(p) => check_body(p)?,
+            }
         }
         Ok(edits)
     };
@@ -658,13 +689,23 @@ pub fn commands(
             let names = joint_names()?;
             let mut commands = Vec::new();
             for edit in parse_edits(&edit)? {
-                let actuators = edit.target.resolve(&names).map_err(|e| e.to_string())?;
-                commands.extend(actuators.into_iter().map(|actuator| Command::Override {
-                    actuator,
-                    change: edit.change,
-                }));
+                match edit {
+                    Edit::Joint(edit) => {
+                        let actuators = edit.target.resolve(&names).map_err(|e| e.to_string())?;
+                        commands.extend(actuators.into_iter().map(|actuator| Command::Override {
+                            actuator,
+                            change: edit.change,
+                        }));
+                    }
+                    Edit::Push(push) => commands.push(Command::Push(push)),
+                }
             }
             commands
+        }
+        WebRequest::Push { body, force, steps } => {
+            let push = Push::new(&body, force, steps).map_err(|e| e.to_string())?;
+            check_body(&push)?;
+            vec![Command::Push(push)]
         }
         WebRequest::Sampled { on } => vec![Command::SetActionMode(if on {
             ActionMode::Sampled
@@ -785,6 +826,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
                 "label": l.label,
                 "root": l.root,
                 "encoder": l.encoder,
+                "bodies": l.body_names,
                 "checkpoint": l.checkpoint.as_ref().map(|p| p.display().to_string()),
                 "step": l.step,
                 "distance": l.distance,

@@ -73,7 +73,7 @@ pub(crate) fn fork_option(
     Ok(match (at, edits) {
         (Some(at), Some(edits)) => Some(gaitscope::lane::Fork {
             at,
-            edits: gaitscope::damage::DamageEdit::parse_list(edits)?,
+            edits: gaitscope::damage::Edit::parse_list(edits)?,
         }),
         _ => None,
     })

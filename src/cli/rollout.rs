@@ -31,10 +31,14 @@ pub(crate) struct RolloutArgs {
     /// One JSON object per episode instead of a text line.
     #[arg(long, conflicts_with = "init_state")]
     json: bool,
-    /// Replay (with --actions) or a --checkpoint's episode: the starting state,
-    /// {"qpos": [15], "qvel": [14]}.
+    /// Replay (with --actions) or a --checkpoint's episode: the starting state, a saved state
+    /// (--save-state-at: physics, damage, window) or a bare {"qpos": [15], "qvel": [14]}.
     #[arg(long, value_name = "FILE")]
     init_state: Option<PathBuf>,
+    /// Write the first episode's state before step K to FILE (for --init-state, and an MJCF
+    /// <key> for MuJoCo).
+    #[arg(long, num_args = 2, value_names = ["K", "FILE"], requires = "checkpoint")]
+    save_state_at: Option<Vec<String>>,
     /// Replay: the actions, [[8 numbers], ...].
     #[arg(long, value_name = "FILE", requires = "init_state")]
     actions: Option<PathBuf>,
@@ -70,14 +74,9 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
         bail!("--init-state needs --actions (a replay) or --checkpoint (a policy from that state)");
     }
     if let (Some(init_path), Some(actions_path)) = (&args.init_state, &args.actions) {
-        let Some(condition) = args.condition else {
-            bail!(
-                "replay needs --condition healthy|mild|severe (the damage scale must be explicit)"
-            );
-        };
         let init = rollout::read_init_state(init_path)?;
         let actions = rollout::read_actions(actions_path)?;
-        rollout::replay(&config, &init, condition, &actions, |record| {
+        rollout::replay(&config, &init, args.condition, &actions, |record| {
             serde_json::to_writer(&mut out, record)?;
             writeln!(out)
         })?;
@@ -93,37 +92,42 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
         let actor = gaitscope::lane::Actor::load(dir)?;
         args.env.note_unused(&actor, &config);
         let fork = fork_option(args.fork_at, args.fork.as_deref())?;
+        let save_at = save_state_option(args.save_state_at.as_deref())?;
         let init = match &args.init_state {
-            Some(path) => {
-                let Some(condition) = args.condition else {
-                    bail!(
-                        "--init-state needs --condition healthy|mild|severe (the damage scale must be explicit)"
-                    );
-                };
-                Some((rollout::read_init_state(path)?, condition))
-            }
+            Some(path) => Some(rollout::read_init_state(path)?),
             None => None,
         };
         // From a given state there is one episode to run (--episodes conflicts with it).
         let episodes = if init.is_some() { 1 } else { args.episodes };
         for episode in 0..episodes {
-            let seed = args.seed.wrapping_add(episode as u64);
+            // A saved state's episode keeps its seed.
+            let seed = match &init {
+                Some(gaitscope::lane::StartState::Saved(s)) => s.seed,
+                _ => args.seed.wrapping_add(episode as u64),
+            };
             let start = match &init {
-                Some((state, condition)) => rollout::Start::State(state, *condition),
+                Some(state) => rollout::Start::State(state, args.condition),
                 None => rollout::Start::Reset,
             };
-            let (summary, fork_summary) = rollout::run_policy_episode(
+            let save = save_at.as_ref().filter(|_| episode == 0).map(|(k, _)| *k);
+            let run = rollout::run_policy_episode(
                 &actor,
                 &config,
                 episode,
                 seed,
                 start,
                 fork.as_ref(),
+                save,
                 |r| step_line(&mut out, args.jsonl, r),
             )
             .with_context(|| format!("episode {episode} (seed {seed})"))?;
-            summary_line(&mut out, &args, &summary)?;
-            if let Some(fork) = &fork_summary {
+            if let (Some(state), Some((k, path))) = (&run.saved, &save_at) {
+                gaitscope::policy::checkpoint::write_atomic(path, state.to_json().as_bytes())
+                    .with_context(|| format!("writing the state before step {k}"))?;
+                eprintln!("saved the state before step {k} to {}", path.display());
+            }
+            summary_line(&mut out, &args, &run.summary)?;
+            if let Some(fork) = &run.fork {
                 if !args.json && !args.jsonl {
                     write!(out, "  fork ")?;
                 }
@@ -143,6 +147,20 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
         summary_line(&mut out, &args, &summary)?;
     }
     Ok(())
+}
+
+/// `--save-state-at K FILE`, parsed.
+fn save_state_option(values: Option<&[String]>) -> Result<Option<(usize, PathBuf)>> {
+    let Some(values) = values else {
+        return Ok(None);
+    };
+    let [k, file] = values else {
+        bail!("--save-state-at takes two values: K FILE");
+    };
+    let k: usize = k
+        .parse()
+        .with_context(|| format!("--save-state-at K: '{k}' is not a step number"))?;
+    Ok(Some((k, PathBuf::from(file))))
 }
 
 /// One step's JSON line (with --jsonl).

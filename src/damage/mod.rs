@@ -9,9 +9,11 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
 
+mod push;
 pub mod scenario;
 mod settings;
 
+pub use push::{MAX_PUSH_NEWTONS, MAX_PUSH_STEPS, Push, PushError, PushRecord};
 pub use settings::{ConditionScales, DamageConfig};
 
 /// Number of actuators in the Ant.
@@ -171,11 +173,13 @@ pub enum DamageError {
     NoSuchActuator(usize),
     #[error("torque scale {0} must be a finite number in [0, 1]")]
     BadScale(f64),
+    #[error("fatigue {0} must be a finite number ≥ 0")]
+    BadFatigue(f64),
     #[error("unknown joint '{name}' (the Ant's joints: {known})")]
     NoSuchJoint { name: String, known: String },
     #[error(
-        "bad damage edit '{0}': expected none, heal:JOINT, fail:JOINT, fail:JOINT=S, scale:JOINT=S or \
-         reset-fatigue:JOINT, with JOINT a joint name (e.g. ankle_3) or all"
+        "bad damage edit '{0}': expected none, heal:JOINT, fail:JOINT, fail:JOINT=S, scale:JOINT=S, \
+         reset-fatigue:JOINT (JOINT a joint name, e.g. ankle_3, or all) or push:BODY=FX,FY,FZ[@N]"
     )]
     BadEdit(String),
 }
@@ -277,6 +281,86 @@ impl fmt::Display for DamageEdit {
     }
 }
 
+/// Anything a person, a fork or a scenario does to a running Ant before a step: a change to
+/// joints' damage, or a push. Written as a comma-separated list on the command line
+/// (`fail:ankle_3,push:torso=0,40,0@5`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Edit {
+    Joint(DamageEdit),
+    Push(Push),
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum EditError {
+    #[error(transparent)]
+    Joint(#[from] DamageError),
+    #[error(transparent)]
+    Push(#[from] PushError),
+}
+
+impl Edit {
+    /// A comma-separated list of edits; `none` is the empty list. A push's force has commas of
+    /// its own: a piece without a `verb:` continues the edit before it.
+    pub fn parse_list(text: &str) -> Result<Vec<Edit>, EditError> {
+        if text.trim() == "none" {
+            return Ok(Vec::new());
+        }
+        let mut items: Vec<String> = Vec::new();
+        for piece in text.split(',') {
+            match items.last_mut() {
+                Some(last) if !piece.contains(':') => {
+                    last.push(',');
+                    last.push_str(piece);
+                }
+                _ => items.push(piece.to_string()),
+            }
+        }
+        items.iter().map(|e| e.parse()).collect()
+    }
+}
+
+impl FromStr for Edit {
+    type Err = EditError;
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        let text = text.trim();
+        if text.starts_with("push:") {
+            Ok(Edit::Push(text.parse()?))
+        } else {
+            Ok(Edit::Joint(text.parse()?))
+        }
+    }
+}
+
+impl fmt::Display for Edit {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Edit::Joint(e) => e.fmt(f),
+            Edit::Push(p) => p.fmt(f),
+        }
+    }
+}
+
+impl From<DamageEdit> for Edit {
+    fn from(e: DamageEdit) -> Self {
+        Edit::Joint(e)
+    }
+}
+
+/// The damage state between two steps, as a saved state file holds it (`--save-state-at`).
+/// Events are history, not state: they are left out.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DamageSave {
+    pub condition: Condition,
+    pub fatigue: [f64; N_ACTUATORS],
+    pub triggered: [bool; N_ACTUATORS],
+    /// Joints whose scale a person pinned (an override), kept when fatigue triggers them.
+    pub manual: [bool; N_ACTUATORS],
+    pub scale: [f64; N_ACTUATORS],
+    pub fatigue_triggers: bool,
+}
+
 /// Fatigue, triggers and torque scales of one episode.
 #[derive(Debug, Clone)]
 pub struct DamageState {
@@ -326,6 +410,43 @@ impl DamageState {
         self.manual = [false; N_ACTUATORS];
         self.scale = [1.0; N_ACTUATORS];
         self.events.clear();
+    }
+
+    /// The state to save (see [`DamageSave`]).
+    pub fn save(&self) -> DamageSave {
+        DamageSave {
+            condition: self.condition,
+            fatigue: self.fatigue,
+            triggered: self.triggered,
+            manual: self.manual,
+            scale: self.scale,
+            fatigue_triggers: self.fatigue_triggers,
+        }
+    }
+
+    /// Starts from a saved state (no events yet); scales and fatigue are checked.
+    pub fn restore_save(&mut self, saved: &DamageSave) -> Result<(), DamageError> {
+        if let Some(&s) = saved
+            .scale
+            .iter()
+            .find(|s| !(s.is_finite() && (0.0..=1.0).contains(*s)))
+        {
+            return Err(DamageError::BadScale(s));
+        }
+        if let Some(&f) = saved
+            .fatigue
+            .iter()
+            .find(|f| !(f.is_finite() && **f >= 0.0))
+        {
+            return Err(DamageError::BadFatigue(f));
+        }
+        self.reset(saved.condition);
+        self.fatigue = saved.fatigue;
+        self.triggered = saved.triggered;
+        self.manual = saved.manual;
+        self.scale = saved.scale;
+        self.fatigue_triggers = saved.fatigue_triggers;
+        Ok(())
     }
 
     /// The command each actuator actually receives for a commanded action.
@@ -491,6 +612,35 @@ impl DamageState {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn edit_lists_mix_joint_edits_and_pushes() {
+        let edits = Edit::parse_list("fail:ankle_3, push:torso=0,40,0@5,heal:all,push:aux_1=1,2,3")
+            .unwrap();
+        let text: Vec<String> = edits.iter().map(Edit::to_string).collect();
+        assert_eq!(
+            text,
+            [
+                "fail:ankle_3",
+                "push:torso=0,40,0@5",
+                "heal:all",
+                "push:aux_1=1,2,3"
+            ]
+        );
+        assert_eq!(Edit::parse_list(" none ").unwrap(), []);
+        assert!(matches!(
+            Edit::parse_list("push:torso=0,40"),
+            Err(EditError::Push(PushError::Syntax(_)))
+        ));
+        assert!(matches!(
+            Edit::parse_list("fail:ankle_3,1,2"),
+            Err(EditError::Joint(DamageError::BadEdit(_)))
+        ));
+        assert!(matches!(
+            Edit::parse_list("push:torso=NaN,0,0"),
+            Err(EditError::Push(PushError::NotFinite(_)))
+        ));
+    }
 
     #[test]
     fn damage_edits_parse_print_and_resolve() {

@@ -16,7 +16,7 @@ use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use super::{Condition, DamageEvent, DamageEventKind, JointOverride};
+use super::{Condition, DamageEvent, DamageEventKind, JointOverride, Push};
 
 /// The built-in out-of-distribution suite (`--suite ood`): damage the training distribution
 /// (fatigue, all joints at one scale) never shows.
@@ -184,6 +184,13 @@ pub struct ScheduledEdit {
     pub change: Change,
 }
 
+/// A push at a step (`{"step": s, "push": {"body": "torso", "force": [fx, fy, fz], "steps": n}}`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScheduledPush {
+    pub step: StepSpec,
+    pub push: Push,
+}
+
 /// A damage scenario (parsed and checked; see the module docs for the format).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Scenario {
@@ -194,6 +201,7 @@ pub struct Scenario {
     /// `+`-joined group (`front_left_leg+back_leg`).
     pub sets: BTreeMap<String, Vec<String>>,
     pub edits: Vec<ScheduledEdit>,
+    pub pushes: Vec<ScheduledPush>,
     /// The JSON it was read from (what a checkpoint or report records).
     pub source: Value,
 }
@@ -243,6 +251,26 @@ struct RawEdit {
     ramp: Option<[f64; 2]>,
     intermittent: Option<RawIntermittent>,
     until: Option<i64>,
+    push: Option<RawPush>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPush {
+    body: String,
+    force: [f64; 3],
+    #[serde(default = "one_step")]
+    steps: i64,
+}
+
+fn one_step() -> i64 {
+    1
+}
+
+/// One entry of a scenario's `edits`: a change to joints, or a push.
+enum Scheduled {
+    Edit(ScheduledEdit),
+    Push(ScheduledPush),
 }
 
 #[derive(Deserialize)]
@@ -286,9 +314,29 @@ fn parse_step(field: &str, v: &Value) -> Result<StepSpec, String> {
 }
 
 impl RawEdit {
-    fn parse(self, i: usize) -> Result<ScheduledEdit, String> {
+    fn parse(self, i: usize) -> Result<Scheduled, String> {
         let at = |f: &str| format!("edits[{i}].{f}");
         let step = parse_step(&at("step"), &self.step)?;
+        if let Some(raw) = self.push {
+            let others = self.joint.is_some()
+                || self.pick.is_some()
+                || self.scale.is_some()
+                || self.fail.is_some()
+                || self.heal.is_some()
+                || self.reset_fatigue.is_some()
+                || self.ramp.is_some()
+                || self.intermittent.is_some()
+                || self.until.is_some();
+            if others {
+                return Err(format!(
+                    "edits[{i}]: a push stands alone (no joint, pick or damage change beside it)"
+                ));
+            }
+            let steps = usize::try_from(raw.steps).unwrap_or(0);
+            let push = Push::new(&raw.body, raw.force, steps)
+                .map_err(|e| format!("{}: {e}", at("push")))?;
+            return Ok(Scheduled::Push(ScheduledPush { step, push }));
+        }
         let target = match (self.joint, self.pick) {
             (Some(j), None) => Target::Named(j),
             (None, Some(p)) => Target::Pick(p),
@@ -367,14 +415,14 @@ impl RawEdit {
                         at("until")
                     ));
                 }
-                Ok(ScheduledEdit {
+                Ok(Scheduled::Edit(ScheduledEdit {
                     step,
                     target,
                     change: *change,
-                })
+                }))
             }
             [] => Err(format!(
-                "edits[{i}]: no change (one of scale, fail, heal, reset_fatigue, ramp, intermittent)"
+                "edits[{i}]: no change (one of scale, fail, heal, reset_fatigue, ramp, intermittent, push)"
             )),
             _ => Err(format!("edits[{i}]: one change per edit")),
         }
@@ -422,19 +470,20 @@ impl Scenario {
                 )));
             }
         };
-        let edits = raw
-            .edits
-            .into_iter()
-            .enumerate()
-            .map(|(i, e)| e.parse(i))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(invalid)?;
+        let (mut edits, mut pushes) = (Vec::new(), Vec::new());
+        for (i, e) in raw.edits.into_iter().enumerate() {
+            match e.parse(i).map_err(invalid)? {
+                Scheduled::Edit(e) => edits.push(e),
+                Scheduled::Push(p) => pushes.push(p),
+            }
+        }
         Ok(Self {
             name: raw.name,
             description: raw.description,
             fatigue,
             sets: raw.sets,
             edits,
+            pushes,
             source,
         })
     }
@@ -486,6 +535,18 @@ impl Scenario {
                 origin: self.name.clone(),
                 reason: format!("edits[{i}]: {reason}"),
             })?;
+        }
+        for p in &self.pushes {
+            if !joints.bodies.contains(&p.push.body) {
+                return Err(ScenarioError::Invalid {
+                    origin: self.name.clone(),
+                    reason: format!(
+                        "push: unknown body '{}' (the model's bodies: {})",
+                        p.push.body,
+                        joints.bodies.join(", ")
+                    ),
+                });
+            }
         }
         Ok(())
     }
@@ -543,9 +604,23 @@ impl Scenario {
                 change: edit.change,
             });
         }
+        // Pushes draw after every damage edit, so a push added to a file leaves its damage
+        // schedule as it was.
+        let pushes = self
+            .pushes
+            .iter()
+            .map(|p| {
+                let start = match p.step {
+                    StepSpec::At(t) => t,
+                    StepSpec::Between(a, b) => rng.random_range(a..=b),
+                };
+                (start, p.push.clone())
+            })
+            .collect();
         Ok(ScenarioPlan {
             name: self.name.clone(),
             items,
+            pushes,
         })
     }
 }
@@ -557,6 +632,8 @@ pub struct JointMap {
     pub legs: Vec<String>,
     /// The leg of each actuator.
     pub leg_of: Vec<usize>,
+    /// The model's named bodies (what a push may name).
+    pub bodies: Vec<String>,
 }
 
 impl JointMap {
@@ -616,6 +693,8 @@ struct PlanItem {
 pub struct ScenarioPlan {
     pub name: String,
     items: Vec<PlanItem>,
+    /// (first step, push).
+    pushes: Vec<(usize, Push)>,
 }
 
 impl ScenarioPlan {
@@ -648,6 +727,15 @@ impl ScenarioPlan {
             }
         }
         out
+    }
+
+    /// The pushes that start before env step `step` runs, in the file's order.
+    pub fn pushes_before(&self, step: usize) -> Vec<Push> {
+        self.pushes
+            .iter()
+            .filter(|(start, _)| *start == step)
+            .map(|(_, p)| p.clone())
+            .collect()
     }
 
     /// Each planned edit's first step and actuators (for reports and tests).
@@ -757,7 +845,67 @@ mod tests {
             .map(String::from)
             .to_vec(),
             leg_of: vec![3, 3, 0, 0, 1, 1, 2, 2],
+            bodies: ["torso", "front_left_leg", "aux_1"]
+                .map(String::from)
+                .to_vec(),
         }
+    }
+
+    #[test]
+    fn pushes_in_a_scenario_parse_check_and_plan() {
+        let s = Scenario::from_json(
+            r#"{"name": "shove", "edits": [
+                {"step": 3, "joint": "ankle_3", "scale": 0.5},
+                {"step": 40, "push": {"body": "torso", "force": [0, 50, 0], "steps": 5}},
+                {"step": [10, 20], "push": {"body": "aux_1", "force": [1, 0, 0]}}]}"#,
+            "test",
+        )
+        .unwrap();
+        assert_eq!(s.edits.len(), 1);
+        assert_eq!(s.pushes.len(), 2);
+        assert_eq!(s.pushes[0].push.steps, 5);
+        assert_eq!(s.pushes[1].push.steps, 1, "one step unless told");
+        s.check(&ant()).unwrap();
+        let plan = s.plan(7, &ant()).unwrap();
+        assert_eq!(plan.pushes_before(40), [s.pushes[0].push.clone()]);
+        assert!(plan.pushes_before(41).is_empty());
+        let drawn = (10..=20)
+            .filter(|&t| !plan.pushes_before(t).is_empty())
+            .count();
+        assert_eq!(drawn, 1, "a ranged push starts once, inside its range");
+        // The damage schedule is the one without the pushes.
+        let alone = Scenario::from_json(
+            r#"{"name": "shove", "edits": [{"step": 3, "joint": "ankle_3", "scale": 0.5}]}"#,
+            "test",
+        )
+        .unwrap();
+        assert_eq!(alone.plan(7, &ant()).unwrap().starts(), plan.starts());
+        // Bad pushes are clear errors.
+        let err = |json: &str| Scenario::from_json(json, "t").unwrap_err().to_string();
+        let unknown = Scenario::from_json(
+            r#"{"name": "x", "edits": [{"step": 1, "push": {"body": "tail", "force": [1, 0, 0]}}]}"#,
+            "t",
+        )
+        .unwrap()
+        .check(&ant())
+        .unwrap_err()
+        .to_string();
+        assert!(
+            unknown.contains("tail") && unknown.contains("torso"),
+            "{unknown}"
+        );
+        let e = err(
+            r#"{"name": "x", "edits": [{"step": 1, "push": {"body": "torso", "force": [5000, 0, 0]}}]}"#,
+        );
+        assert!(e.contains("edits[0].push") && e.contains("5000 N"), "{e}");
+        let e = err(
+            r#"{"name": "x", "edits": [{"step": 1, "joint": "hip_1", "push": {"body": "torso", "force": [1, 0, 0]}}]}"#,
+        );
+        assert!(e.contains("stands alone"), "{e}");
+        let e = err(
+            r#"{"name": "x", "edits": [{"step": 1, "push": {"body": "torso", "force": [1, 0, 0], "steps": -2}}]}"#,
+        );
+        assert!(e.contains("1 to 1000 env steps"), "{e}");
     }
 
     fn parse(text: &str) -> Result<Scenario, String> {

@@ -13,12 +13,17 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use crate::config::{DamageConfig, EnvConfig, GaitConfig};
-use crate::damage::{DamageEdit, DamageEvent, JointState, N_ACTUATORS};
+use crate::damage::{DamageEvent, Edit, JointState, N_ACTUATORS, PushRecord};
 use crate::env::{
     ACT_DIM, Action, AntEnv, EnvError, EnvSnapshot, N_LEGS, Observation, StepOutcome,
 };
 use crate::policy::{ActionMode, Policy};
 use crate::window::ContextWindow;
+
+mod saved;
+pub use saved::{
+    MAX_STATE_BYTES, STATE_FORMAT, SavedState, SavedWindow, StartState, StateFileError,
+};
 
 #[derive(Debug, thiserror::Error)]
 pub enum LaneError {
@@ -241,6 +246,8 @@ pub struct StepRecord {
     /// The damage events that belong to this step: its triggers, and the edits (by hand, by a
     /// scenario, by a fork) that took effect with it.
     pub events: Vec<DamageEvent>,
+    /// The pushes that acted during this step (one that starts here is an event too).
+    pub pushes: Vec<PushRecord>,
 }
 
 impl StepRecord {
@@ -276,6 +283,7 @@ impl StepRecord {
             qpos: env.qpos().to_vec(),
             qvel: env.qvel().to_vec(),
             events,
+            pushes: env.last_pushes().to_vec(),
             outcome,
         }
     }
@@ -317,16 +325,16 @@ pub fn checkpoint_world(trained: &GaitConfig, requested: &GaitConfig) -> GaitCon
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fork {
     pub at: usize,
-    pub edits: Vec<DamageEdit>,
+    pub edits: Vec<Edit>,
 }
 
 impl Fork {
-    /// Checked once, before any step, for every front-end: every edit names a joint of this
-    /// world's model, and step `at` lies inside its step limit.
+    /// Checked once, before any step, for every front-end: every edit names a joint (or a
+    /// push a body) of this world's model, and step `at` lies inside its step limit.
     pub fn validate(&self, world: &GaitConfig) -> Result<(), LaneError> {
         let env = AntEnv::new(world.clone(), 0)?;
         for edit in &self.edits {
-            env.damage().resolve(&edit.target).map_err(EnvError::from)?;
+            env.check_edit(edit)?;
         }
         let limit = world.env.max_episode_steps;
         if self.at >= limit {
@@ -459,7 +467,7 @@ impl Lane {
     }
 
     /// A second lane from this one's exact state, `edits` applied before its next step.
-    pub fn fork(&self, edits: &[DamageEdit]) -> Result<Lane, LaneError> {
+    pub fn fork(&self, edits: &[Edit]) -> Result<Lane, LaneError> {
         let mut env = AntEnv::new(self.env.config().clone(), 0)?;
         env.restore(&self.env.snapshot())?;
         for edit in edits {
@@ -690,7 +698,7 @@ mod tests {
     #[test]
     fn a_fork_is_validated_against_the_world_before_any_step() {
         let world = severe(100);
-        let edit = |s: &str| crate::damage::DamageEdit::parse_list(s).unwrap();
+        let edit = |s: &str| crate::damage::Edit::parse_list(s).unwrap();
         assert!(
             Fork {
                 at: 10,
@@ -773,7 +781,7 @@ mod tests {
         for _ in 0..5 {
             lane.advance(&actor, ActionMode::Deterministic).unwrap();
         }
-        let edits = crate::damage::DamageEdit::parse_list("fail:hip_1").unwrap();
+        let edits = crate::damage::Edit::parse_list("fail:hip_1").unwrap();
         let mut fork = lane.fork(&edits).unwrap();
         let first = fork.advance(&actor, ActionMode::Deterministic).unwrap();
         assert_eq!(first.step(), 5);

@@ -15,7 +15,8 @@
 //! | `{root}/world/focus` | LineStrips3D, a faint 2.5 m ring on the floor under the torso: what the 3-D view's camera tracks (its size sets the framing) | per step |
 //! | `{root}/joints/fatigue`, `{root}/joints/scale` | Scalars × 8 (series named by joint, actuator order) | per step |
 //! | `{root}/joints/threshold` | Scalars | episode start and end |
-//! | `{root}/events` | TextLog (triggers WARN, overrides INFO, breakpoint hits BREAK, rewinds and forks BRANCH) | on events |
+//! | `{root}/events` | TextLog (triggers WARN, overrides INFO, breakpoint hits BREAK, rewinds and forks BRANCH, pushes PUSH) | on events |
+//! | `{root}/world/push` | Arrows3D, one per acting push, ending at the pushed body's centre of mass (1 m per 50 N), labelled "40 N on torso" | while a push acts; cleared after |
 //! | `{root}/actions/commanded`, `{root}/actions/applied` | Scalars × 8 | per step |
 //! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
@@ -468,6 +469,8 @@ pub struct AntLogger {
     z_named: Option<usize>,
     /// The `step` timeline's value now: event texts name it.
     now_step: u64,
+    /// Whether a push arrow is on screen (cleared the step after its push ends).
+    push_drawn: bool,
 }
 
 /// How a lane's plot lines are told apart from another lane's in the same views.
@@ -594,6 +597,7 @@ impl AntLogger {
             series_style: None,
             z_named: None,
             now_step: 0,
+            push_drawn: false,
         }
     }
 
@@ -1011,6 +1015,7 @@ impl AntLogger {
                 &rerun::TextLog::new(text).with_level(level),
             )?;
         }
+        self.log_pushes(record)?;
         let r = out.reward;
         self.rec.log(
             self.path("reward").as_str(),
@@ -1095,6 +1100,55 @@ impl AntLogger {
     }
 }
 
+impl AntLogger {
+    /// A push that starts with this step is an event (level PUSH); while pushes act, an arrow
+    /// per push ends at the body's centre of mass, its length the force (1 m per
+    /// [`PUSH_NEWTONS_PER_METRE`] N); the step after the last one, the arrow is cleared.
+    fn log_pushes(&mut self, record: &crate::lane::StepRecord) -> Result<(), TelemetryError> {
+        for p in record.pushes.iter().filter(|p| p.starts_at(record.step())) {
+            let text = format!("step {}: {}", self.now_step, p.describe());
+            self.log_note(NoteLevel::Push, &text)?;
+        }
+        let path = self.path("world/push");
+        if record.pushes.is_empty() {
+            if self.push_drawn {
+                self.rec.log(path.as_str(), &rerun::Clear::flat())?;
+                self.push_drawn = false;
+            }
+            return Ok(());
+        }
+        let vectors: Vec<[f32; 3]> = record
+            .pushes
+            .iter()
+            .map(|p| p.push.force.map(|f| (f / PUSH_NEWTONS_PER_METRE) as f32))
+            .collect();
+        let origins: Vec<[f32; 3]> = record
+            .pushes
+            .iter()
+            .zip(&vectors)
+            .map(|(p, v)| std::array::from_fn(|k| p.point[k] as f32 - v[k]))
+            .collect();
+        self.rec.log(
+            path.as_str(),
+            &rerun::Arrows3D::from_vectors(vectors)
+                .with_origins(origins)
+                .with_colors([rerun::Color::from_rgb(255, 140, 0)])
+                .with_radii([0.03])
+                .with_labels(
+                    record
+                        .pushes
+                        .iter()
+                        .map(|p| format!("{:.0} N on {}", p.push.magnitude(), p.push.body)),
+                ),
+        )?;
+        self.push_drawn = true;
+        Ok(())
+    }
+}
+
+/// A push arrow's length: this many newtons per metre.
+pub const PUSH_NEWTONS_PER_METRE: f64 = 50.0;
+
 /// Levels of the debugger's own notes in the event log (beside Rerun's WARN for triggers and
 /// INFO for overrides), so the viewer can filter and colour them.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -1103,6 +1157,8 @@ pub enum NoteLevel {
     Break,
     /// A rewind or a fork started a branch.
     Branch,
+    /// A push (an external force) started.
+    Push,
 }
 
 impl NoteLevel {
@@ -1110,6 +1166,7 @@ impl NoteLevel {
         match self {
             NoteLevel::Break => "BREAK",
             NoteLevel::Branch => "BRANCH",
+            NoteLevel::Push => "PUSH",
         }
     }
 }

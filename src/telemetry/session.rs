@@ -6,7 +6,7 @@ use rerun::RecordingStream;
 
 use super::{AntLogger, EpisodeMeta, Sink, TelemetryError};
 use crate::config::GaitConfig;
-use crate::damage::{DamageEdit, JointOverride, N_ACTUATORS};
+use crate::damage::{Edit, JointOverride, N_ACTUATORS};
 use crate::env::AntEnv;
 use crate::lane::StepRecord;
 use crate::policy::ActionMode;
@@ -362,7 +362,7 @@ impl Session {
     /// Starts a counterfactual lane of the main model (root [`FORK_ROOT`], drawn beside the
     /// others) from its exact current state with `edits` applied; it steps in lockstep until it
     /// ends, the episode ends, or [`Self::end_fork`]. A previous fork is replaced.
-    pub fn fork(&mut self, edits: &[DamageEdit]) -> Result<(), RecordError> {
+    pub fn fork(&mut self, edits: &[Edit]) -> Result<(), RecordError> {
         self.drop_fork()?;
         let Some(main) = self.lanes.first() else {
             return Ok(());
@@ -563,6 +563,19 @@ impl Session {
     ) -> Result<(), RecordError> {
         for lane in &mut self.lanes {
             lane.core.env_mut().apply_override(actuator, change)?;
+        }
+        Ok(())
+    }
+
+    /// The same push on every running lane (forks included), from the next step on. Checked
+    /// against every lane's model first, so a bad body changes nothing.
+    pub fn push(&mut self, push: &crate::damage::Push) -> Result<(), RecordError> {
+        let edit = Edit::Push(push.clone());
+        for lane in &self.lanes {
+            lane.core.env().check_edit(&edit)?;
+        }
+        for lane in self.lanes.iter_mut().filter(|l| !l.core.is_done()) {
+            lane.core.env_mut().apply_edit(&edit)?;
         }
         Ok(())
     }
