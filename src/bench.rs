@@ -362,6 +362,7 @@ pub fn bench_record(
             episodes,
             seed: 0,
             sink: Sink::File(path.clone()),
+            start: None,
             fork: None,
         },
         &std::sync::atomic::AtomicBool::new(false),
@@ -431,6 +432,7 @@ pub fn bench_live(
                 mode: crate::policy::ActionMode::Deterministic,
                 paused: false,
                 breakpoints: Vec::new(),
+                start: None,
                 fork: None,
                 config: crate::GaitConfig::default(),
             };

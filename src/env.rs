@@ -517,8 +517,8 @@ impl AntEnv {
         // a snapshot never holds one: the active list is the state).
         for p in &self.pushes.active {
             let f = &mut self.physics.xfrc_applied_mut()[p.body];
-            for k in 0..3 {
-                f[k] += p.push.force[k];
+            for (f, push) in f.iter_mut().zip(p.push.force) {
+                *f += push;
             }
         }
         for _ in 0..self.config.env.frame_skip {

@@ -464,6 +464,8 @@ pub struct VideoOptions {
     pub config: crate::config::GaitConfig,
     pub seed: u64,
     pub fork: Option<crate::lane::Fork>,
+    /// Every lane starts from this state (`--init-state`).
+    pub start: Option<crate::lane::StartState>,
 }
 
 /// Renders one episode to `opts.out`: every check (size, name, fork in the model's world)
@@ -478,6 +480,7 @@ pub fn render(opts: VideoOptions) -> Result<usize, VideoError> {
         config,
         seed,
         fork,
+        start,
     } = opts;
     spec.check()?;
     if out.extension().and_then(|e| e.to_str()) != Some("mp4") {
@@ -519,6 +522,13 @@ pub fn render(opts: VideoOptions) -> Result<usize, VideoError> {
             seed,
             lane_spec,
         )?);
+    }
+    if let Some(start) = &start {
+        for lane in &mut lanes {
+            lane.lane
+                .start_from(start)
+                .map_err(|e| VideoError::Render(e.to_string()))?;
+        }
     }
     let mut encoder = Encoder::start(&out, spec)?;
     let frames = render_episode(lanes, fork.as_ref(), spec, lane_spec, &mut encoder)?;

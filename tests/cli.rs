@@ -275,9 +275,27 @@ fn missing_files_and_bad_flags_are_clear() {
         stderr(&out)
     );
 
-    let out = gaitscope(&["rollout", "--init-state", "x.json", "--actions", "y.json"]);
+    // A bare state (qpos, qvel) brings no damage state: the replay needs a condition.
+    let dir = tempfile::tempdir().unwrap();
+    let bare = dir.path().join("bare.json");
+    let actions = dir.path().join("actions.json");
+    let mut qpos = vec![0.0; 15];
+    (qpos[2], qpos[3]) = (0.75, 1.0);
+    std::fs::write(
+        &bare,
+        serde_json::json!({"qpos": qpos, "qvel": vec![0.0; 14]}).to_string(),
+    )
+    .unwrap();
+    std::fs::write(&actions, "[[0, 0, 0, 0, 0, 0, 0, 0]]").unwrap();
+    let out = gaitscope(&[
+        "rollout",
+        "--init-state",
+        bare.to_str().unwrap(),
+        "--actions",
+        actions.to_str().unwrap(),
+    ]);
     assert!(
-        stderr(&out).contains("replay needs --condition"),
+        stderr(&out).contains("needs --condition healthy|mild|severe"),
         "{}",
         stderr(&out)
     );

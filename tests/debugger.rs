@@ -57,6 +57,7 @@ fn setup(seed: u64, breakpoints: Vec<Breakpoint>) -> LiveSetup {
         mode: ActionMode::Deterministic,
         paused: true,
         breakpoints,
+        start: None,
         fork: None,
         config: GaitConfig::default(),
     }
@@ -356,6 +357,7 @@ fn a_recording_holds_the_fork_lane() {
         episodes: 1,
         seed: 0,
         sink: Sink::Memory,
+        start: None,
         fork: Some(Fork {
             at: 30,
             edits: Edit::parse_list("fail:hip_1").unwrap(),

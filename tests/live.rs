@@ -49,6 +49,7 @@ fn setup(dir: &Path, condition: LiveCondition) -> LiveSetup {
         mode: ActionMode::Deterministic,
         paused: true,
         breakpoints: Vec::new(),
+        start: None,
         fork: None,
         config: GaitConfig::default(),
     }

@@ -259,3 +259,45 @@ fn bad_state_files_are_clear_errors() {
     assert!(err.contains("before step 400: no state to save"), "{err}");
     assert!(!late.exists());
 }
+
+/// `record --init-state`: the recording starts where the state was saved, damage included —
+/// its first step is the saved episode's step K (the same session start `live` uses).
+#[test]
+fn a_recording_starts_from_a_saved_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rows, file) = saved_episode(dir.path());
+    let out = dir.path().join("from-state.rrd");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args([
+            "record",
+            "--checkpoint",
+            CHECKPOINT,
+            "--condition",
+            "severe",
+        ])
+        .args(["--max-steps", "150", "--init-state"])
+        .arg(&file)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let reader = std::io::BufReader::new(std::fs::File::open(&out).unwrap());
+    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(reader)
+        .map(|m| m.unwrap())
+        .collect();
+    let chunks = common::recording_chunks(msgs);
+    let fatigue = common::joint_series(&chunks, "/ant/joints/fatigue");
+    assert_eq!(fatigue.len(), rows.len() - K, "the steps from K to the end");
+    // Global step 1 is env step K.
+    for (t, orig) in rows[K..].iter().enumerate() {
+        let want: Vec<f64> = serde_json::from_value(orig["fatigue"].clone()).unwrap();
+        for (a, b) in fatigue[&(t as i64 + 1)].iter().zip(&want) {
+            assert!((a - b).abs() < 1e-9, "step {}: {a} vs {b}", K + t);
+        }
+    }
+}

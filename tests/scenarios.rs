@@ -203,6 +203,7 @@ fn overrides_saved_from_live_replay_step_for_step_in_rollout() {
         mode: ActionMode::Deterministic,
         paused: true,
         breakpoints: Vec::new(),
+        start: None,
         fork: None,
         config: GaitConfig::default(),
     };

@@ -66,6 +66,7 @@ fn options(sink: Sink) -> RecordOptions {
         episodes: 1,
         seed: SEED,
         sink,
+        start: None,
         fork: None,
     }
 }

@@ -458,6 +458,57 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         assert_eq!(lane_step(&s), 6);
         assert_eq!(joint(&s, "ankle_3")["scale"], 0.1);
 
+        // Bad pushes are refused with their reason too.
+        for (body, reason) in [
+            (
+                r#"{"command":"push","body":"tail","force":[0,40,0]}"#,
+                "unknown body 'tail' to push",
+            ),
+            (
+                r#"{"command":"push","body":"torso","force":[0,4000,0]}"#,
+                "more than the 1000 N",
+            ),
+            (
+                r#"{"command":"push","body":"torso","force":[0,40]}"#,
+                "malformed request",
+            ),
+        ] {
+            let reply = send_raw(&client, body).await;
+            let error = reply["error"].as_str().unwrap_or_default();
+            assert!(error.contains(reason), "{body}: {reply}");
+        }
+        // "Push" with the page's defaults (torso, 40 N along +y, 5 steps), then two steps.
+        click(&client, "push").await;
+        wait_state(&client, "push taken", |s| {
+            s["commands_handled"].as_u64().unwrap() > handled
+        })
+        .await;
+        step_by(&client, 2).await;
+        wait_state(&client, "step 8", |s| lane_step(s) == 8).await;
+        // "Save state": the page fetches the state before step 9 (and offers it as a file).
+        click(&client, "save-state").await;
+        let deadline = Instant::now() + WAIT;
+        let saved = loop {
+            let v = client
+                .execute("return window.gaitscopeSavedState || null", vec![])
+                .await
+                .unwrap();
+            if let Some(text) = v.as_str() {
+                break text.to_string();
+            }
+            assert!(Instant::now() < deadline, "no saved state");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        let saved: Value = serde_json::from_str(&saved).unwrap();
+        assert_eq!(saved["format"], "gaitscope-state/1");
+        assert_eq!(saved["step"], 8);
+        assert_eq!(
+            saved["damage"]["scale"][7], 0.1,
+            "ankle_3 failed by the page"
+        );
+        assert_eq!(saved["pushes"][0]["remaining"], 3, "5-step push, 2 taken");
+        assert!(saved["mjcf_key"].as_str().unwrap().starts_with("<key "));
+
         // The Rerun web viewer loads in the same browser and draws the stream.
         client.new_window(true).await.unwrap();
         let handles = client.windows().await.unwrap();
@@ -502,7 +553,11 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     // The legs: per-step colours only, ankle_3 red from the step after the page failed it.
     common::assert_no_static_shadowing(&chunks);
     let threshold = gaitscope::GaitConfig::default().damage.threshold;
-    assert_eq!(common::check_leg_colors(&chunks, "/ant", threshold, &[]), 1);
+    assert_eq!(
+        common::check_leg_colors(&chunks, "/ant", threshold, &[]),
+        3,
+        "ankle_3 red at steps 6, 7 and 8"
+    );
     // The 3-D view is titled by checkpoint, not by the lane's fixed root ("Ant: ant").
     let views = common::blueprint_view_names(&read_msgs(&save));
     assert!(
@@ -512,11 +567,11 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     assert!(!views.contains(&"Ant: ant".to_string()), "{views:?}");
     let commanded = common::joint_series(&chunks, "/ant/actions/commanded");
     let applied = common::joint_series(&chunks, "/ant/actions/applied");
-    assert_eq!(applied.len(), 6, "6 env steps reached the file");
+    assert_eq!(applied.len(), 8, "8 env steps reached the file");
     // Env step t is recorded at global step t + 1; ankle_3 is actuator 7 in Ant-v4's order.
     let a = 7;
-    for t in 0..6i64 {
-        let scale = if t == 5 { 0.1 } else { 1.0 };
+    for t in 0..8i64 {
+        let scale = if t >= 5 { 0.1 } else { 1.0 };
         assert_eq!(
             applied[&(t + 1)][a],
             scale * commanded[&(t + 1)][a],
@@ -526,8 +581,26 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     let events = common::text_log(&chunks, "/ant/events");
     assert_eq!(
         events,
-        vec![(6, "step 6: ankle_3 failed by hand; scale → 0.1".to_string())]
+        vec![
+            (6, "step 6: ankle_3 failed by hand; scale → 0.1".to_string()),
+            (
+                7,
+                "step 7: push torso by (0, 40, 0) N for 5 steps".to_string()
+            )
+        ]
     );
+    // The push's arrow is drawn on the two steps it acted (and still acts).
+    let vectors = rerun::Arrows3D::descriptor_vectors().component;
+    let arrows: Vec<i64> = common::per_step(&chunks, "/ant/world/push", |c| {
+        c.iter_slices::<[f32; 3]>(vectors)
+            .map(|s| s.len())
+            .collect::<Vec<usize>>()
+    })
+    .into_iter()
+    .filter(|(_, n)| *n > 0)
+    .map(|(t, _)| t)
+    .collect();
+    assert_eq!(arrows, [7, 8]);
 }
 
 #[test]

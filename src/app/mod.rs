@@ -148,6 +148,8 @@ pub enum Command {
     SetScenario(Option<crate::damage::scenario::Scenario>),
     /// Write this episode's hand-made overrides (main model) as a scenario file.
     SaveScenario(PathBuf),
+    /// Write the main model's state before its next step (`--init-state` starts from it).
+    SaveState(PathBuf),
     /// Stop the simulation thread.
     Quit,
 }
@@ -188,6 +190,8 @@ pub enum LiveError {
     ForkAfterEnd,
     #[error("cannot write scenario {path}: {reason}")]
     SaveScenario { path: PathBuf, reason: String },
+    #[error("cannot write the saved state {path}: {reason}")]
+    SaveState { path: PathBuf, reason: String },
     #[error("the simulation thread stopped unexpectedly")]
     SimThreadPanicked,
     #[error("starting the simulation thread: {0}")]

@@ -67,6 +67,8 @@ pub struct Panel {
     scenario_text: String,
     save_text: String,
     scenario_error: Option<String>,
+    /// Where "Save state" writes.
+    state_text: String,
     /// The push row: body, force (N, world frame), steps, and why the last push was refused.
     push_body: String,
     push_force: [f64; 3],
@@ -92,6 +94,7 @@ impl Panel {
             scenario_text: String::new(),
             save_text: "scenarios/saved.json".into(),
             scenario_error: None,
+            state_text: "saved-state.json".into(),
             push_body: "torso".into(),
             push_force: [0.0, 40.0, 0.0],
             push_steps: 5,
@@ -321,6 +324,20 @@ impl Panel {
                 .clicked()
             {
                 self.send(Command::SaveScenario(PathBuf::from(self.save_text.trim())));
+            }
+        });
+        ui.horizontal(|ui| {
+            ui.label("Save state to");
+            ui.add(egui::TextEdit::singleline(&mut self.state_text).desired_width(150.0));
+            if ui
+                .button("Save state")
+                .on_hover_text(
+                    "the main model's state before its next step: physics, damage, window, and an \
+                     MJCF <key> (start from it with --init-state)",
+                )
+                .clicked()
+            {
+                self.send(Command::SaveState(PathBuf::from(self.state_text.trim())));
             }
         });
         if let Some(e) = &self.scenario_error {

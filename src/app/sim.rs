@@ -48,6 +48,8 @@ pub struct LiveSetup {
     pub fork: Option<crate::rollout::Fork>,
     /// Env settings (model, weights); a checkpoint's own task settings take precedence.
     pub config: GaitConfig,
+    /// Every episode (each reset) starts from this state (`--init-state`).
+    pub start: Option<crate::lane::StartState>,
 }
 
 impl LiveSetup {
@@ -223,6 +225,9 @@ pub struct Snapshot {
     /// This episode's hand-made overrides (main model) as a scenario file's JSON: what
     /// "save" writes, and what the web page downloads.
     pub recorded_scenario: Option<serde_json::Value>,
+    /// The main model's state before its next step: what "Save state" writes and the page
+    /// downloads (`--init-state` starts from it).
+    pub saved_state: Option<Arc<crate::lane::SavedState>>,
     /// Commands the sim thread has taken so far, in the order they were sent.
     pub commands_handled: u64,
     /// The simulation thread has stopped.
@@ -278,6 +283,7 @@ impl SimHandle {
         session.keep_history(true);
         session.set_action_mode(setup.mode);
         session.set_fatigue_triggers(setup.condition.fatigue_triggers());
+        session.set_start_state(setup.start.clone().map(Arc::new));
         session.start_episode(setup.seed)?;
 
         let dt = session.lanes()[0].env().dt();
@@ -704,11 +710,32 @@ impl Sim {
                 }
             }
             Command::SaveScenario(path) => self.save_scenario(&path),
+            Command::SaveState(path) => self.save_state(&path),
             Command::Quit => Ok(()),
         };
         if let Err(e) = result {
             self.message = Some(e.to_string());
         }
+    }
+
+    /// The main model's state before its next step, as `--init-state` reads it.
+    fn save_state(&mut self, path: &std::path::Path) -> Result<(), LiveError> {
+        let Some(lane) = self.session.lanes().first() else {
+            return Ok(());
+        };
+        let state = lane.save_state(self.session.seed());
+        crate::policy::checkpoint::write_atomic(path, state.to_json().as_bytes()).map_err(|e| {
+            LiveError::SaveState {
+                path: path.to_owned(),
+                reason: e.to_string(),
+            }
+        })?;
+        self.message = Some(format!(
+            "saved the state before step {} to {}",
+            state.env.step,
+            path.display()
+        ));
+        Ok(())
     }
 
     /// The main lane's hand-made overrides of this episode, as a scenario file that replays
@@ -849,6 +876,11 @@ impl Sim {
                 .first()
                 .is_some_and(|l| l.probe().is_some()),
             recorded_scenario: self.recorded_scenario("live-session"),
+            saved_state: self
+                .session
+                .lanes()
+                .first()
+                .map(|l| Arc::new(l.save_state(self.session.seed()))),
             commands_handled: self.commands_handled,
             stopped: false,
         }

@@ -272,6 +272,21 @@ impl WebServer {
                 let _ = request.respond(response);
                 Routed::Other
             }
+            (tiny_http::Method::Get, "/saved-state.json") => {
+                let Some(state) = sim.snapshot().saved_state else {
+                    respond(request, 409, &json!({ "error": "no model is loaded" }));
+                    return Routed::Refused;
+                };
+                let name = format!("gaitscope-state-step{}.json", state.env.step);
+                let response = tiny_http::Response::from_string(state.to_json())
+                    .with_header(header("Content-Type", "application/json"))
+                    .with_header(header(
+                        "Content-Disposition",
+                        &format!("attachment; filename=\"{name}\""),
+                    ));
+                let _ = request.respond(response);
+                Routed::Other
+            }
             (tiny_http::Method::Get, "/events") => {
                 if clients.load(Ordering::SeqCst) >= MAX_EVENT_CLIENTS {
                     respond(request, 503, &json!({ "error": "too many open pages" }));

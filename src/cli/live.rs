@@ -45,6 +45,10 @@ pub(crate) struct LiveArgs {
     /// The fork's damage edits, as for `rollout --fork`.
     #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
     fork: Option<String>,
+    /// Start every episode (each reset) from this state: a saved state (`rollout
+    /// --save-state-at`, the panel's "Save state") with its damage, or a bare {"qpos", "qvel"}.
+    #[arg(long, value_name = "FILE")]
+    init_state: Option<PathBuf>,
     /// Stream to a viewer that is already running, e.g. rerun+http://HOST:9876/proxy.
     #[arg(long, value_name = "URL")]
     connect: Option<String>,
@@ -119,6 +123,7 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
         )?,
         fork: fork_option(args.fork_at, args.fork.as_deref())?,
         config,
+        start: super::start_state(args.init_state.as_deref())?,
     };
     // Check what can be checked before any window opens: the input first, then the display.
     setup.validate()?;

@@ -79,6 +79,16 @@ pub(crate) fn fork_option(
     })
 }
 
+/// `--init-state FILE`, read and checked before anything starts.
+pub(crate) fn start_state(
+    path: Option<&std::path::Path>,
+) -> Result<Option<gaitscope::lane::StartState>> {
+    Ok(match path {
+        Some(p) => Some(gaitscope::rollout::read_init_state(p)?),
+        None => None,
+    })
+}
+
 /// `--suite`'s long help: each built-in scenario with its one-line description.
 pub(crate) fn suite_help() -> String {
     let mut help = String::from(

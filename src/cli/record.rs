@@ -41,6 +41,10 @@ pub(crate) struct RecordArgs {
     /// The fork's damage edits, as for `rollout --fork`.
     #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
     fork: Option<String>,
+    /// Start every episode from this state (a saved state, `rollout --save-state-at`, with its
+    /// damage; or a bare {"qpos", "qvel"} under the episode's condition).
+    #[arg(long, value_name = "FILE")]
+    init_state: Option<PathBuf>,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -91,6 +95,7 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
         seed: args.seed,
         sink: Sink::File(args.out.clone()),
         fork: fork_option(args.fork_at, args.fork.as_deref())?,
+        start: super::start_state(args.init_state.as_deref())?,
     };
     let summary = telemetry::record(opts, &stop)?;
     let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);

@@ -24,6 +24,9 @@ pub(crate) struct VideoArgs {
     /// The fork's damage edits, as for `rollout --fork`.
     #[arg(long, value_name = "EDIT[,EDIT...]", requires = "fork_at")]
     fork: Option<String>,
+    /// Start from this state (a saved state with its damage, or a bare {"qpos", "qvel"}).
+    #[arg(long, value_name = "FILE")]
+    init_state: Option<std::path::PathBuf>,
     #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
     policy: BuiltinPolicy,
     #[arg(long, value_name = "healthy|mild|severe", default_value = "severe")]
@@ -99,6 +102,7 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
         config,
         seed: args.seed,
         fork: super::fork_option(args.fork_at, args.fork.as_deref())?,
+        start: super::start_state(args.init_state.as_deref())?,
     })?;
     let secs = started.elapsed().as_secs_f64();
     eprintln!(

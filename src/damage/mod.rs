@@ -235,6 +235,8 @@ impl FromStr for DamageEdit {
         let (verb, rest) = text.split_once(':').ok_or_else(bad)?;
         let target = |name: &str| match name {
             "" => Err(bad()),
+            // A list's pieces are split at commas before this: one left over is a stray value.
+            name if name.contains(',') => Err(bad()),
             "all" => Ok(EditTarget::All),
             joint => Ok(EditTarget::Joint(joint.to_string())),
         };

@@ -16,7 +16,7 @@
 //! | `{root}/joints/fatigue`, `{root}/joints/scale` | Scalars × 8 (series named by joint, actuator order) | per step |
 //! | `{root}/joints/threshold` | Scalars | episode start and end |
 //! | `{root}/events` | TextLog (triggers WARN, overrides INFO, breakpoint hits BREAK, rewinds and forks BRANCH, pushes PUSH) | on events |
-//! | `{root}/world/push` | Arrows3D, one per acting push, ending at the pushed body's centre of mass (1 m per 50 N), labelled "40 N on torso" | while a push acts; cleared after |
+//! | `{root}/world/push` | Arrows3D, one per acting push, pointing at the pushed body's centre of mass (head 0.3 m short of it; 1 m per 50 N), labelled "40 N on torso" | while a push acts; cleared after |
 //! | `{root}/actions/commanded`, `{root}/actions/applied` | Scalars × 8 | per step |
 //! | `{root}/reward` | Scalars × 4: native, progress, success, total | per step |
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
@@ -1102,8 +1102,9 @@ impl AntLogger {
 
 impl AntLogger {
     /// A push that starts with this step is an event (level PUSH); while pushes act, an arrow
-    /// per push ends at the body's centre of mass, its length the force (1 m per
-    /// [`PUSH_NEWTONS_PER_METRE`] N); the step after the last one, the arrow is cleared.
+    /// per push points at the body's centre of mass (its head [`PUSH_ARROW_GAP`] short of it),
+    /// its length the force (1 m per [`PUSH_NEWTONS_PER_METRE`] N); the step after the last one,
+    /// the arrow is cleared.
     fn log_pushes(&mut self, record: &crate::lane::StepRecord) -> Result<(), TelemetryError> {
         for p in record.pushes.iter().filter(|p| p.starts_at(record.step())) {
             let text = format!("step {}: {}", self.now_step, p.describe());
@@ -1122,18 +1123,23 @@ impl AntLogger {
             .iter()
             .map(|p| p.push.force.map(|f| (f / PUSH_NEWTONS_PER_METRE) as f32))
             .collect();
+        // The head stops short of the centre of mass, outside the torso's 0.25 m sphere, so it
+        // shows.
         let origins: Vec<[f32; 3]> = record
             .pushes
             .iter()
             .zip(&vectors)
-            .map(|(p, v)| std::array::from_fn(|k| p.point[k] as f32 - v[k]))
+            .map(|(p, v)| {
+                let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-9);
+                std::array::from_fn(|k| p.point[k] as f32 - v[k] - PUSH_ARROW_GAP * v[k] / norm)
+            })
             .collect();
         self.rec.log(
             path.as_str(),
             &rerun::Arrows3D::from_vectors(vectors)
                 .with_origins(origins)
                 .with_colors([rerun::Color::from_rgb(255, 140, 0)])
-                .with_radii([0.03])
+                .with_radii([0.045])
                 .with_labels(
                     record
                         .pushes
@@ -1148,6 +1154,8 @@ impl AntLogger {
 
 /// A push arrow's length: this many newtons per metre.
 pub const PUSH_NEWTONS_PER_METRE: f64 = 50.0;
+/// Metres between a push arrow's head and the body's centre of mass.
+pub const PUSH_ARROW_GAP: f32 = 0.3;
 
 /// Levels of the debugger's own notes in the event log (beside Rerun's WARN for triggers and
 /// INFO for overrides), so the viewer can filter and colour them.

@@ -165,6 +165,12 @@ impl Lane {
         self.stepped_at
     }
     /// For a fork lane: what it was forked from.
+    /// The lane's state before its next step, as a file saves it (`seed`: the episode's).
+    pub fn save_state(&self, seed: u64) -> crate::lane::SavedState {
+        let checkpoint = self.actor.checkpoint_dir().map(|_| self.actor.label());
+        self.core.save_state(seed, checkpoint)
+    }
+
     pub fn fork_of(&self) -> Option<&str> {
         self.fork_of.as_deref()
     }
@@ -194,6 +200,8 @@ pub struct Session {
     global_max: u64,
     /// Roots overlaid in the plots: the lanes', and this episode's earlier branches.
     plot_roots: Vec<String>,
+    /// Where every episode starts (`--init-state`), instead of the reset's state.
+    start: Option<std::sync::Arc<crate::lane::StartState>>,
 }
 
 impl Session {
@@ -224,6 +232,7 @@ impl Session {
             episode_start: 0,
             global_max: 0,
             plot_roots,
+            start: None,
         };
         session.style_lanes()?;
         Ok(session)
@@ -453,6 +462,12 @@ impl Session {
         Ok(())
     }
 
+    /// Every later episode starts from `start` (a saved state: its physics, damage and, for the
+    /// model that saved it, window) after the reset with its seed.
+    pub fn set_start_state(&mut self, start: Option<std::sync::Arc<crate::lane::StartState>>) {
+        self.start = start;
+    }
+
     /// Takes the models out, leaving no lanes until [`Self::replace_lanes`].
     pub fn take_actors(&mut self) -> Vec<Actor> {
         self.lanes.drain(..).map(|l| l.actor).collect()
@@ -490,6 +505,9 @@ impl Session {
                 .env_mut()
                 .set_fatigue_triggers(self.fatigue_triggers);
             lane.core.reset(seed);
+            if let Some(start) = &self.start {
+                lane.core.start_from(start)?;
+            }
             lane.probe_before = None;
             lane.logger.set_time(self.global_step, episode);
             let meta = episode_meta(self.fatigue_triggers, seed, &lane.actor, lane.core.env());
@@ -642,6 +660,8 @@ pub struct RecordOptions {
     /// Fork the first model in every episode before step `at`, with these edits (lane
     /// [`FORK_ROOT`], drawn beside the others).
     pub fork: Option<crate::rollout::Fork>,
+    /// Every episode starts from this state (`--init-state`).
+    pub start: Option<crate::lane::StartState>,
 }
 
 /// Outcome of a recording.
@@ -789,6 +809,7 @@ pub fn record(
         })
         .collect();
     let mut session = Session::new(rec, specs, opts.config)?;
+    session.set_start_state(opts.start.map(std::sync::Arc::new));
     let mut episodes_done = 0;
     let mut interrupted = false;
     'episodes: for k in 0..opts.episodes {
