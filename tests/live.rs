@@ -505,6 +505,40 @@ mod panel {
     }
 
     #[test]
+    fn the_push_button_pushes_and_save_state_writes_what_init_state_reads() {
+        let (dir, sim, _storage) = started(LiveCondition::Severe);
+        let mut ui = harness(&sim);
+        ui.run();
+        // The push row's defaults: torso, 40 N along +y, 5 steps.
+        let handled = sim.snapshot().commands_handled;
+        ui.get_by_label("Push").click();
+        ui.run();
+        sim.wait_for(WAIT, |s| s.commands_handled > handled);
+        step_once(&sim);
+        let s = step_once(&sim);
+        let saved = s.saved_state.expect("a model is loaded");
+        assert_eq!(saved.env.step, 2);
+        assert_eq!(saved.env.pushes.len(), 1);
+        assert_eq!(saved.env.pushes[0].push.force, [0.0, 40.0, 0.0]);
+        assert_eq!(saved.env.pushes[0].remaining, 3, "5-step push, 2 taken");
+        // "Save state" (the command the button sends, to the path beside it) writes the file
+        // --init-state reads back.
+        let path = dir.path().join("state.json");
+        assert!(sim.send(Command::SaveState(path.clone())));
+        let s = sim.wait_for(WAIT, |s| {
+            s.message
+                .as_deref()
+                .is_some_and(|m| m.contains("saved the state"))
+        });
+        assert!(s.message.unwrap().contains("before step 2"));
+        match gaitscope::lane::StartState::read(&path).unwrap() {
+            gaitscope::lane::StartState::Saved(read) => assert_eq!(*read, *saved),
+            other => panic!("{other:?}"),
+        }
+        sim.shutdown().unwrap();
+    }
+
+    #[test]
     fn resume_and_pause_buttons_drive_the_sim() {
         let (_dir, sim, _storage) = started(LiveCondition::Severe);
         let mut ui = harness(&sim);
