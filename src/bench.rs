@@ -363,6 +363,7 @@ pub fn bench_record(
             seed: 0,
             sink: Sink::File(path.clone()),
             start: None,
+            attribution: false,
             fork: None,
         },
         &std::sync::atomic::AtomicBool::new(false),
@@ -384,6 +385,8 @@ pub fn bench_record(
 #[derive(Debug, Clone)]
 pub struct LiveBenchRow {
     pub models: usize,
+    /// Whether the attribution view ran with every step.
+    pub attribution: bool,
     pub report: crate::app::SpeedReport,
 }
 
@@ -392,8 +395,13 @@ impl std::fmt::Display for LiveBenchRow {
         let r = &self.report;
         write!(
             f,
-            "{} model(s) at {}×: {:.1} of {:.0} env steps/s asked for ({:.1} % of real time) over {:.1} s",
+            "{} model(s){} at {}×: {:.1} of {:.0} env steps/s asked for ({:.1} % of real time) over {:.1} s",
             self.models,
+            if self.attribution {
+                " + attribution"
+            } else {
+                ""
+            },
             r.speed,
             r.steps_per_s(),
             r.target_steps_per_s,
@@ -404,7 +412,8 @@ impl std::fmt::Display for LiveBenchRow {
 }
 
 /// The live loop, headless (telemetry to a scratch .rrd, no panel): at 1× and 8× real time, the
-/// checkpoint alone and side by side with `compare`, `seconds` each.
+/// checkpoint alone and side by side with `compare`, without and with the attribution view,
+/// `seconds` each.
 pub fn bench_live(
     checkpoint: &Path,
     compare: &Path,
@@ -414,8 +423,12 @@ pub fn bench_live(
     use crate::telemetry::{Sink, open};
     let scratch = std::env::temp_dir().join(format!("gaitscope-bench-live-{}", std::process::id()));
     let mut rows = Vec::new();
-    for second in [None, Some(compare.to_path_buf())] {
-        for speed in [1.0, 8.0] {
+    for (second, speed, attribution) in [None, Some(compare.to_path_buf())]
+        .into_iter()
+        .flat_map(|c| [1.0, 8.0].map(|s| (c.clone(), s)))
+        .flat_map(|(c, s)| [false, true].map(|a| (c.clone(), s, a)))
+    {
+        {
             let sink = Sink::File(scratch.join("live.rrd"));
             let (rec, _) = open(
                 &sink,
@@ -433,6 +446,7 @@ pub fn bench_live(
                 paused: false,
                 breakpoints: Vec::new(),
                 start: None,
+                attribution,
                 fork: None,
                 config: crate::GaitConfig::default(),
             };
@@ -442,6 +456,7 @@ pub fn bench_live(
             if let Some(r) = report.speeds.into_iter().find(|r| r.speed == speed) {
                 rows.push(LiveBenchRow {
                     models: 1 + usize::from(second.is_some()),
+                    attribution,
                     report: r,
                 });
             }

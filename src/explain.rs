@@ -302,6 +302,127 @@ pub fn explain_step(
     Ok((attribution, feature_groups(lane.env().actuators())))
 }
 
+/// What moved z away from where a reset leaves it: integrated gradients of the scalar
+/// ‖z(x) − z(0)‖ (z(0): the latent of the all-zero window a reset starts with) over the same
+/// path, one backward pass. By completeness the attributions add up to ‖z − z(0)‖: the live
+/// view's heatmap, cheap enough to run beside the sim.
+#[derive(Debug, Clone, Serialize)]
+pub struct ShiftAttribution {
+    pub steps: usize,
+    /// ‖z − z(0)‖ at the input.
+    pub shift: f64,
+    /// Window slots (oldest first) × entry features.
+    pub attribution: Vec<Vec<f64>>,
+}
+
+impl ShiftAttribution {
+    /// |Σ attribution − shift|.
+    pub fn completeness_error(&self) -> f64 {
+        (self.attribution.iter().flatten().sum::<f64>() - self.shift).abs()
+    }
+
+    /// Slots × groups: each group's features summed (signed) per slot.
+    pub fn by_group(&self, groups: &[FeatureGroup]) -> Vec<Vec<f64>> {
+        self.attribution
+            .iter()
+            .map(|slot| {
+                groups
+                    .iter()
+                    .map(|g| g.features.iter().map(|&f| slot[f]).sum())
+                    .collect()
+            })
+            .collect()
+    }
+}
+
+/// See [`ShiftAttribution`]; `window` is context_len × entry, as the policy reads it.
+pub fn z_shift_attribution(
+    policy: &Policy,
+    window: &[f32],
+    steps: usize,
+) -> Result<ShiftAttribution, ExplainError> {
+    let net = policy.net();
+    let (t_len, entry, obs_dim) = (net.context_len, net.entry_dim(), net.obs_dim);
+    if !net.encoder.uses_window() {
+        return Err(ExplainError::Input(format!(
+            "a '{}' model has no latent z to explain",
+            net.encoder
+        )));
+    }
+    if steps == 0 || steps > 10_000 || window.len() != t_len * entry {
+        return Err(ExplainError::Input(format!(
+            "{steps} points and a window of {} values (expected 1..=10000 and {})",
+            window.len(),
+            t_len * entry
+        )));
+    }
+    let device = Device::Cpu;
+    // z(0) first, as a constant; then the path, α = (k + ½)/steps.
+    let zero = PolicyInput {
+        window: Some(Tensor::zeros(
+            (1, t_len, entry),
+            candle_core::DType::F32,
+            &device,
+        )?),
+        obs: Tensor::zeros((1, obs_dim), candle_core::DType::F32, &device)?,
+    };
+    let z0 = forward(policy, &zero, Target::Z)?;
+    let scaled: Vec<f32> = (0..steps)
+        .flat_map(|k| {
+            let a = (k as f32 + 0.5) / steps as f32;
+            window.iter().map(move |&v| a * v)
+        })
+        .collect();
+    let var = Var::from_vec(scaled, (steps, t_len, entry), &device)?;
+    let input = PolicyInput {
+        window: Some(var.as_tensor().clone()),
+        obs: Tensor::zeros((steps, obs_dim), candle_core::DType::F32, &device)?,
+    };
+    let z = forward(policy, &input, Target::Z)?;
+    // ‖·‖ with a floor inside the root: near α = 0 the shift vanishes and its gradient is
+    // undefined; the floor (1e-12) changes the value by < 1e-6.
+    let norm = z
+        .broadcast_sub(&z0)?
+        .sqr()?
+        .sum(D::Minus1)?
+        .affine(1.0, 1e-12)?
+        .sqrt()?;
+    let grads = norm.sum_all()?.backward()?;
+    let g = match grads.get(&var) {
+        Some(g) => g.flatten_all()?.to_vec1::<f32>()?,
+        None => vec![0.0; steps * window.len()],
+    };
+    let len = window.len();
+    let flat: Vec<f64> = (0..len)
+        .map(|i| {
+            let sum: f64 = (0..steps).map(|k| f64::from(g[k * len + i])).sum();
+            sum / steps as f64 * f64::from(window[i])
+        })
+        .collect();
+    // The shift at the input itself.
+    let at = PolicyInput {
+        window: Some(Tensor::from_vec(
+            window.to_vec(),
+            (1, t_len, entry),
+            &device,
+        )?),
+        obs: Tensor::zeros((1, obs_dim), candle_core::DType::F32, &device)?,
+    };
+    let shift = f64::from(
+        forward(policy, &at, Target::Z)?
+            .sub(&z0)?
+            .sqr()?
+            .sum_all()?
+            .sqrt()?
+            .to_scalar::<f32>()?,
+    );
+    Ok(ShiftAttribution {
+        steps,
+        shift,
+        attribution: flat.chunks(entry).map(<[f64]>::to_vec).collect(),
+    })
+}
+
 /// z or tanh(μ) for a batch, weights frozen (gradients reach the inputs only).
 fn forward(policy: &Policy, input: &PolicyInput, target: Target) -> candle_core::Result<Tensor> {
     match target {
@@ -408,6 +529,42 @@ mod tests {
                 (numeric - analytic).abs() <= 1e-3 + 1e-2 * numeric.abs(),
                 "feature {i}: {analytic} vs {numeric}"
             );
+        }
+    }
+
+    #[test]
+    fn the_z_shift_attribution_adds_up_to_the_shift() {
+        for kind in [EncoderKind::Lstm, EncoderKind::MlpWindow] {
+            let p = policy(kind);
+            let (window, _) = inputs(p.net(), 4);
+            let a = z_shift_attribution(&p, &window, 64).unwrap();
+            assert!(a.shift > 0.0);
+            assert!(
+                a.completeness_error() <= (0.01 * a.shift).max(1e-3),
+                "{kind}: error {} of a shift {}",
+                a.completeness_error(),
+                a.shift
+            );
+            assert!(a.attribution[..2].iter().flatten().all(|&v| v == 0.0));
+            // The shift, computed by hand from the per-dimension z.
+            let z = |w: &[f32]| {
+                integrated_gradients(&p, w, &vec![0.0; 29], Target::Z, 1)
+                    .unwrap()
+                    .output
+            };
+            let (zx, z0) = (z(&window), z(&vec![0.0; window.len()]));
+            let by_hand = zx
+                .iter()
+                .zip(&z0)
+                .map(|(a, b)| (a - b) * (a - b))
+                .sum::<f64>()
+                .sqrt();
+            assert!((a.shift - by_hand).abs() < 1e-5, "{} vs {by_hand}", a.shift);
+            let env = crate::env::AntEnv::new(crate::GaitConfig::default(), 0).unwrap();
+            let grouped = a.by_group(&feature_groups(env.actuators()));
+            assert_eq!((grouped.len(), grouped[0].len()), (6, 10));
+            let total: f64 = grouped.iter().flatten().sum();
+            assert!((total - a.attribution.iter().flatten().sum::<f64>()).abs() < 1e-9);
         }
     }
 

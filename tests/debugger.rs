@@ -58,6 +58,7 @@ fn setup(seed: u64, breakpoints: Vec<Breakpoint>) -> LiveSetup {
         paused: true,
         breakpoints,
         start: None,
+        attribution: false,
         fork: None,
         config: GaitConfig::default(),
     }
@@ -358,6 +359,7 @@ fn a_recording_holds_the_fork_lane() {
         seed: 0,
         sink: Sink::Memory,
         start: None,
+        attribution: false,
         fork: Some(Fork {
             at: 30,
             edits: Edit::parse_list("fail:hip_1").unwrap(),

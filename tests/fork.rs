@@ -354,6 +354,7 @@ fn every_front_end_refuses_a_bad_fork_before_any_step() {
             paused: true,
             breakpoints: Vec::new(),
             start: None,
+            attribution: false,
             fork: Some(gaitscope::rollout::Fork {
                 at: at.parse().unwrap(),
                 edits: gaitscope::damage::Edit::parse_list(edits).unwrap(),

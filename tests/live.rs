@@ -50,6 +50,7 @@ fn setup(dir: &Path, condition: LiveCondition) -> LiveSetup {
         paused: true,
         breakpoints: Vec::new(),
         start: None,
+        attribution: false,
         fork: None,
         config: GaitConfig::default(),
     }
@@ -521,6 +522,11 @@ mod panel {
         assert_eq!(saved.env.pushes.len(), 1);
         assert_eq!(saved.env.pushes[0].push.force, [0.0, 40.0, 0.0]);
         assert_eq!(saved.env.pushes[0].remaining, 3, "5-step push, 2 taken");
+        // The attribution checkbox turns the view on.
+        assert!(!s.attribution);
+        ui.get_by_label("Why z moved (attribution)").click();
+        ui.run();
+        assert!(sim.wait_for(WAIT, |s| s.attribution).attribution);
         // "Save state" (the command the button sends, to the path beside it) writes the file
         // --init-state reads back.
         let path = dir.path().join("state.json");

@@ -204,6 +204,7 @@ fn overrides_saved_from_live_replay_step_for_step_in_rollout() {
         paused: true,
         breakpoints: Vec::new(),
         start: None,
+        attribution: false,
         fork: None,
         config: GaitConfig::default(),
     };

@@ -67,6 +67,7 @@ fn options(sink: Sink) -> RecordOptions {
         seed: SEED,
         sink,
         start: None,
+        attribution: false,
         fork: None,
     }
 }
@@ -591,4 +592,77 @@ fn a_push_is_an_event_and_an_arrow_while_it_acts() {
                 .any(|k| k.to_string().contains("Clear"))
     });
     assert!(cleared, "the arrow is cleared after the push");
+}
+
+/// `record --attribution`: each step's slot × group heatmap and group totals, which add up
+/// (completeness) to how far z is from z(0) — checked against the recording's own z series and
+/// z(0) from the policy (issue 32).
+#[test]
+fn the_attribution_view_adds_up_to_how_far_z_moved() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/encoder-lstm");
+    let actor = Actor::load(std::path::Path::new(dir)).unwrap();
+    let policy = actor.policy().unwrap().clone();
+    let mut opts = options(Sink::Memory);
+    opts.actors = vec![actor];
+    opts.attribution = true;
+    let out = record(opts, &AtomicBool::new(false)).unwrap();
+    let chunks = chunks(out.storage.unwrap().take());
+    common::assert_no_static_shadowing(&chunks);
+    let net = policy.net();
+    let zeros = vec![0.0f32; net.context_len * net.entry_dim()];
+    let z0 = gaitscope::explain::integrated_gradients(
+        &policy,
+        &zeros,
+        &vec![0.0; net.obs_dim],
+        gaitscope::explain::Target::Z,
+        1,
+    )
+    .unwrap()
+    .baseline_output;
+    let scalars = rerun::Scalars::descriptor_scalars().component;
+    let z = by_step(&chunks, "/ant/latent/z", |c| {
+        c.iter_slices::<f64>(scalars).map(|s| s.to_vec()).collect()
+    });
+    let totals = by_step(&chunks, "/ant/latent/attribution_groups", |c| {
+        c.iter_slices::<f64>(scalars).map(|s| s.to_vec()).collect()
+    });
+    let shapes = by_step(&chunks, "/ant/latent/attribution", |c| {
+        c.iter_component::<rerun::components::TensorData>(
+            rerun::Tensor::descriptor_data().component,
+        )
+        .map(|t| t.first().map(|t| t.0.shape.to_vec()).unwrap_or_default())
+        .collect()
+    });
+    assert_eq!(totals.len(), z.len(), "one attribution per step");
+    assert!(z.len() > 50);
+    let mut worst: f64 = 0.0;
+    for (step, z) in &z {
+        assert_eq!(shapes[step], [10, 16], "step {step}: groups × window slots");
+        let t = &totals[step];
+        assert_eq!(t.len(), 10);
+        let shift = z
+            .iter()
+            .zip(&z0)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
+        let sum: f64 = t.iter().sum();
+        // f32 network, 32 midpoints: within 1 % of the shift.
+        worst = worst.max((sum - shift).abs() / shift);
+        assert!(
+            (sum - shift).abs() <= 0.01 * shift + 1e-4,
+            "step {step}: Σ attribution {sum}, ‖z − z(0)‖ {shift}"
+        );
+    }
+    eprintln!(
+        "largest completeness error: {:.3} % of the shift",
+        100.0 * worst
+    );
+    // The series are named by group (joints in actuator order, torso, goal).
+    let names = common::series_names(&chunks, "/ant/latent/attribution_groups");
+    assert_eq!(names.len(), 10);
+    assert!(
+        names[0].starts_with("hip_4") && names[8].starts_with("torso"),
+        "{names:?}"
+    );
 }

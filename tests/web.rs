@@ -477,6 +477,9 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             let error = reply["error"].as_str().unwrap_or_default();
             assert!(error.contains(reason), "{body}: {reply}");
         }
+        // The attribution checkbox reaches the sim.
+        click(&client, "attribution").await;
+        wait_state(&client, "attribution on", |s| s["attribution"] == true).await;
         // "Push" with the page's defaults (torso, 40 N along +y, 5 steps), then two steps.
         click(&client, "push").await;
         wait_state(&client, "push taken", |s| {

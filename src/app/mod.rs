@@ -114,6 +114,8 @@ pub enum Command {
     },
     /// Push every model's body (an external force for a few steps); logged as an event.
     Push(crate::damage::Push),
+    /// Log why z moved (the attribution view) with every step, or stop.
+    SetAttribution(bool),
     /// Condition of the next episode.
     SetCondition(LiveCondition),
     /// Seed of the next episode.

@@ -509,6 +509,17 @@ impl Panel {
         if let Some(hit) = &v.break_hit {
             ui.colored_label(Color32::from_rgb(240, 180, 40), format!("⏸ {hit}"));
         }
+        let mut attribution = v.attribution;
+        if ui
+            .checkbox(&mut attribution, "Why z moved (attribution)")
+            .on_hover_text(
+                "integrated gradients of ‖z − z(0)‖ over the window, every step: a window slot × \
+                 joint heatmap and per-group series in the viewer (encoder models)",
+            )
+            .changed()
+        {
+            self.send(Command::SetAttribution(attribution));
+        }
 
         ui.label(RichText::new("Time travel and forks").strong());
         ui.horizontal(|ui| {

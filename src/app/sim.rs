@@ -50,6 +50,8 @@ pub struct LiveSetup {
     pub config: GaitConfig,
     /// Every episode (each reset) starts from this state (`--init-state`).
     pub start: Option<crate::lane::StartState>,
+    /// Start with the attribution view on (why z moved; the panel toggles it).
+    pub attribution: bool,
 }
 
 impl LiveSetup {
@@ -228,6 +230,8 @@ pub struct Snapshot {
     /// The main model's state before its next step: what "Save state" writes and the page
     /// downloads (`--init-state` starts from it).
     pub saved_state: Option<Arc<crate::lane::SavedState>>,
+    /// Whether the attribution view (why z moved) is on.
+    pub attribution: bool,
     /// Commands the sim thread has taken so far, in the order they were sent.
     pub commands_handled: u64,
     /// The simulation thread has stopped.
@@ -284,6 +288,7 @@ impl SimHandle {
         session.set_action_mode(setup.mode);
         session.set_fatigue_triggers(setup.condition.fatigue_triggers());
         session.set_start_state(setup.start.clone().map(Arc::new));
+        session.set_attribution(setup.attribution)?;
         session.start_episode(setup.seed)?;
 
         let dt = session.lanes()[0].env().dt();
@@ -618,6 +623,9 @@ impl Sim {
                 .apply_override(actuator, change)
                 .map_err(LiveError::from),
             Command::Push(push) => self.session.push(&push).map_err(LiveError::from),
+            Command::SetAttribution(on) => {
+                self.session.set_attribution(on).map_err(LiveError::from)
+            }
             Command::SetCondition(c) => {
                 self.condition = c;
                 Ok(())
@@ -881,6 +889,7 @@ impl Sim {
                 .lanes()
                 .first()
                 .map(|l| Arc::new(l.save_state(self.session.seed()))),
+            attribution: self.session.attribution(),
             commands_handled: self.commands_handled,
             stopped: false,
         }

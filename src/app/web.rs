@@ -576,6 +576,10 @@ pub enum WebRequest {
     Edit {
         edit: String,
     },
+    /// The attribution view (why z moved) on or off.
+    Attribution {
+        on: bool,
+    },
     /// An external force (newtons, world frame) on a body for `steps` env steps.
     Push {
         body: String,
@@ -717,6 +721,7 @@ pub fn commands(
             }
             commands
         }
+        WebRequest::Attribution { on } => vec![Command::SetAttribution(on)],
         WebRequest::Push { body, force, steps } => {
             let push = Push::new(&body, force, steps).map_err(|e| e.to_string())?;
             check_body(&push)?;
@@ -864,6 +869,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
         "step_limit": s.step_limit,
         "sampled": s.mode == ActionMode::Sampled,
         "compare": s.compare,
+        "attribution": s.attribution,
         "compare_checkpoint": s.compare_checkpoint.as_ref().map(|p| p.display().to_string()),
         "episode_seed": s.episode_seed,
         "episodes": s.episodes,

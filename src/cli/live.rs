@@ -49,6 +49,9 @@ pub(crate) struct LiveArgs {
     /// --save-state-at`, the panel's "Save state") with its damage, or a bare {"qpos", "qvel"}.
     #[arg(long, value_name = "FILE")]
     init_state: Option<PathBuf>,
+    /// Start with the attribution view on: why z moved, per step (the panel and page toggle it).
+    #[arg(long)]
+    attribution: bool,
     /// Stream to a viewer that is already running, e.g. rerun+http://HOST:9876/proxy.
     #[arg(long, value_name = "URL")]
     connect: Option<String>,
@@ -124,6 +127,7 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
         fork: fork_option(args.fork_at, args.fork.as_deref())?,
         config,
         start: super::start_state(args.init_state.as_deref())?,
+        attribution: args.attribution,
     };
     // Check what can be checked before any window opens: the input first, then the display.
     setup.validate()?;

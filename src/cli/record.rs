@@ -45,6 +45,10 @@ pub(crate) struct RecordArgs {
     /// damage; or a bare {"qpos", "qvel"} under the episode's condition).
     #[arg(long, value_name = "FILE")]
     init_state: Option<PathBuf>,
+    /// Also record why z moved at every step (integrated gradients of ‖z − z(0)‖ over the
+    /// window: a slot × joint heatmap; encoder models).
+    #[arg(long)]
+    attribution: bool,
     #[command(flatten)]
     env: EnvArgs,
 }
@@ -96,6 +100,7 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
         sink: Sink::File(args.out.clone()),
         fork: fork_option(args.fork_at, args.fork.as_deref())?,
         start: super::start_state(args.init_state.as_deref())?,
+        attribution: args.attribution,
     };
     let summary = telemetry::record(opts, &stop)?;
     let size = std::fs::metadata(&args.out).map(|m| m.len()).unwrap_or(0);

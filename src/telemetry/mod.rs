@@ -22,6 +22,7 @@
 //! | `{root}/goal/distance`, `{root}/goal/progress_rate` | Scalars | per step |
 //! | `{root}/gait/{leg}` | StateChange: a stance state named by the leg's damage while its foot touches the floor, an empty state (a gap) in swing; StateConfiguration (colours) static | on changes |
 //! | `{root}/latent/z` | Scalars × 32 | per step (encoder policies) |
+//! | `{root}/latent/attribution`, `{root}/latent/attribution_groups` | Tensor 16 × 10 (window slot × feature group: why ‖z − z(0)‖ is what it is, integrated gradients) and its group totals as Scalars × 10 | per step, with the attribution view on |
 //! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point, large; episode every 5th step), coloured by triggered joints | with `probe.json` |
 //! | `{root}/latent/pca3`, `{root}/latent/pca3_trail` | Points3D, the same in the first three PCA axes | with `probe.json` |
 //! | `{root}/probe/predicted`, `{root}/probe/truth` | Scalars × 8: P(joint damaged) from z, and the truth | with `probe.json` |
@@ -265,6 +266,16 @@ pub fn default_titles(roots: &[String]) -> Vec<String> {
 /// The layout with a 3-D view per `world_roots` (titled by `titles`, in the same order) and every
 /// root of `plot_roots` overlaid in the plots (a rewind's branches beside the history they left).
 pub fn layout_with(world_roots: &[String], titles: &[String], plot_roots: &[String]) -> Layout {
+    layout_for(world_roots, titles, plot_roots, false)
+}
+
+/// [`layout_with`]; with `attribution`, the tabs holding the attribution views come up on them.
+pub fn layout_for(
+    world_roots: &[String],
+    titles: &[String],
+    plot_roots: &[String],
+    attribution: bool,
+) -> Layout {
     let roots = world_roots;
     let mut properties: Vec<(String, Box<dyn rerun::AsComponents + Send>)> = Vec::new();
     let paths = |leaves: &[&str]| -> Vec<String> {
@@ -319,6 +330,23 @@ pub fn layout_with(world_roots: &[String], titles: &[String], plot_roots: &[Stri
     );
     let scale = series(TimeSeriesView::new("Torque scale").with_contents(paths(&["joints/scale"])));
     let latent = series(TimeSeriesView::new("z").with_contents(paths(&["latent/z"])));
+    // Its legend stays: ten named groups are the point of this plot.
+    let why: rerun::blueprint::ContainerLike =
+        TimeSeriesView::new("Why z moved, per group (attribution)")
+            .with_contents(paths(&["latent/attribution_groups"]))
+            .into();
+    let why_grid: rerun::blueprint::ContainerLike =
+        rerun::blueprint::TensorView::new("Why z moved: window slot × group")
+            .with_contents(paths(&["latent/attribution"]))
+            .into();
+    let tabs = |views: Vec<rerun::blueprint::ContainerLike>, shown: Option<String>| {
+        let tabs = rerun::blueprint::Tabs::new(views);
+        match shown {
+            Some(path) if attribution => tabs.with_active_tab(path),
+            _ => tabs,
+        }
+    };
+    let (why_path, grid_path) = (view_path(&why), view_path(&why_grid));
     let progress =
         series(TimeSeriesView::new("Goal distance").with_contents(paths(&["goal/distance"])));
     let probe = series(
@@ -340,8 +368,8 @@ pub fn layout_with(world_roots: &[String], titles: &[String], plot_roots: &[Stri
                 .with_row_shares([1.5, 1.0, 1.0, 1.0])
                 .into(),
             Vertical::new([
-                latent,
-                rerun::blueprint::Tabs::new([pca.into(), pca3.into()]).into(),
+                tabs(vec![latent, why], why_path).into(),
+                tabs(vec![pca.into(), pca3.into(), why_grid], grid_path).into(),
                 probe,
             ])
             .into(),
@@ -386,8 +414,20 @@ pub fn send_layout_with(
     titles: &[String],
     plot_roots: &[String],
 ) -> Result<(), TelemetryError> {
+    send_layout_for(rec, world_roots, titles, plot_roots, false)
+}
+
+/// [`send_layout_with`], the attribution views up front when `attribution` (see
+/// [`layout_for`]).
+pub fn send_layout_for(
+    rec: &RecordingStream,
+    world_roots: &[String],
+    titles: &[String],
+    plot_roots: &[String],
+    attribution: bool,
+) -> Result<(), TelemetryError> {
     use rerun::log::LogMsg;
-    let layout = layout_with(world_roots, titles, plot_roots);
+    let layout = layout_for(world_roots, titles, plot_roots, attribution);
     let (scratch, storage) = RecordingStreamBuilder::new(APP_ID).memory()?;
     layout.blueprint.send(
         &scratch,
@@ -471,6 +511,8 @@ pub struct AntLogger {
     now_step: u64,
     /// Whether a push arrow is on screen (cleared the step after its push ends).
     push_drawn: bool,
+    /// Whether the attribution series' names are out (static, once).
+    attribution_named: bool,
 }
 
 /// How a lane's plot lines are told apart from another lane's in the same views.
@@ -598,6 +640,7 @@ impl AntLogger {
             z_named: None,
             now_step: 0,
             push_drawn: false,
+            attribution_named: false,
         }
     }
 
@@ -1148,6 +1191,59 @@ impl AntLogger {
                 ),
         )?;
         self.push_drawn = true;
+        Ok(())
+    }
+}
+
+/// Interpolation points of the live attribution: 32 keep completeness within 0.1 % of the
+/// shift on the bundled LSTM and cost 0.7 ms a step (docs/debugger.md).
+pub const ATTRIBUTION_POINTS: usize = 32;
+
+impl AntLogger {
+    /// Why z moved at this step: the attribution of ‖z − z(0)‖ as a feature group × window slot
+    /// heatmap (`latent/attribution`, a Tensor: 10 × 16; rows the eight joints in actuator
+    /// order, torso, goal; columns the slots, oldest first) and each group's total as a series
+    /// (`latent/attribution_groups`, named by group, a hue each).
+    pub fn log_attribution(
+        &mut self,
+        env: &AntEnv,
+        a: &crate::explain::ShiftAttribution,
+    ) -> Result<(), TelemetryError> {
+        let groups = crate::explain::feature_groups(env.actuators());
+        let grid = a.by_group(&groups);
+        let names: Vec<&str> = groups.iter().map(|g| g.name.as_str()).collect();
+        // Row-major, groups × slots: wide, as the view is.
+        let values: Vec<f32> = (0..groups.len())
+            .flat_map(|g| grid.iter().map(move |slot| slot[g] as f32))
+            .collect();
+        let data = rerun::datatypes::TensorData::new(
+            vec![groups.len() as u64, grid.len() as u64],
+            rerun::datatypes::TensorBuffer::F32(values.into()),
+        )
+        .with_dim_names([
+            format!("rows: {}", names.join(", ")),
+            "window slot (oldest → newest)".to_string(),
+        ]);
+        self.rec.log(
+            self.path("latent/attribution").as_str(),
+            &rerun::Tensor::new(data),
+        )?;
+        let path = self.path("latent/attribution_groups");
+        if !self.attribution_named {
+            let n = names.len();
+            self.rec.log_static(
+                path.as_str(),
+                &rerun::SeriesLines::new()
+                    .with_names(names.iter().map(|g| format!("{g} → ‖z − z(0)‖")))
+                    .with_colors((0..n).map(|i| {
+                        let [r, g, b] = hsl_to_rgb(360.0 * i as f64 / n as f64, 0.75, 0.6);
+                        rerun::Color::from_rgb(r, g, b)
+                    })),
+            )?;
+            self.attribution_named = true;
+        }
+        let totals = (0..groups.len()).map(|g| grid.iter().map(|slot| slot[g]).sum::<f64>());
+        self.rec.log(path.as_str(), &rerun::Scalars::new(totals))?;
         Ok(())
     }
 }

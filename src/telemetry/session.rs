@@ -202,6 +202,8 @@ pub struct Session {
     plot_roots: Vec<String>,
     /// Where every episode starts (`--init-state`), instead of the reset's state.
     start: Option<std::sync::Arc<crate::lane::StartState>>,
+    /// Log why z moved (integrated gradients of ‖z − z(0)‖) with every step of encoder lanes.
+    attribution: bool,
 }
 
 impl Session {
@@ -233,6 +235,7 @@ impl Session {
             global_max: 0,
             plot_roots,
             start: None,
+            attribution: false,
         };
         session.style_lanes()?;
         Ok(session)
@@ -292,7 +295,7 @@ impl Session {
         );
         let labels: Vec<String> = self.lanes.iter().map(Lane::series_label).collect();
         let titles = super::view_titles(&labels, &roots);
-        super::send_layout_with(&self.rec, &roots, &titles, &plots)
+        super::send_layout_for(&self.rec, &roots, &titles, &plots, self.attribution)
     }
 
     fn drop_fork(&mut self) -> Result<bool, RecordError> {
@@ -468,6 +471,20 @@ impl Session {
         self.start = start;
     }
 
+    /// Turns the attribution view on or off (from the next step); the layout brings its tabs
+    /// up front while it is on.
+    pub fn set_attribution(&mut self, on: bool) -> Result<(), TelemetryError> {
+        if self.attribution != on {
+            self.attribution = on;
+            self.send_current_layout()?;
+        }
+        Ok(())
+    }
+
+    pub fn attribution(&self) -> bool {
+        self.attribution
+    }
+
     /// Takes the models out, leaving no lanes until [`Self::replace_lanes`].
     pub fn take_actors(&mut self) -> Vec<Actor> {
         self.lanes.drain(..).map(|l| l.actor).collect()
@@ -536,6 +553,18 @@ impl Session {
                 continue;
             }
             lane.probe_before = lane.probe_now().copied();
+            // Why z moves: from the window this step's decision reads, before it is pushed.
+            let attribution = match (self.attribution, lane.actor.policy()) {
+                (true, Some(policy)) if policy.net().encoder.uses_window() => Some(
+                    crate::explain::z_shift_attribution(
+                        policy,
+                        lane.core.window().as_slice(),
+                        super::ATTRIBUTION_POINTS,
+                    )
+                    .map_err(|e| RecordError::Attribution(e.to_string()))?,
+                ),
+                _ => None,
+            };
             // The stepping core steps; the sinks only read its record.
             lane.core.advance(&lane.actor, self.mode)?;
             let Some(record) = lane.core.last() else {
@@ -544,6 +573,9 @@ impl Session {
             lane.stepped_at = self.global_step;
             lane.logger.set_time(self.global_step, episode);
             lane.logger.log_step(lane.core.env(), record)?;
+            if let Some(a) = &attribution {
+                lane.logger.log_attribution(lane.core.env(), a)?;
+            }
             let out = &record.outcome;
             if out.done() {
                 let meta = episode_meta(
@@ -662,6 +694,8 @@ pub struct RecordOptions {
     pub fork: Option<crate::rollout::Fork>,
     /// Every episode starts from this state (`--init-state`).
     pub start: Option<crate::lane::StartState>,
+    /// Log why z moved with every step (encoder models).
+    pub attribution: bool,
 }
 
 /// Outcome of a recording.
@@ -696,6 +730,8 @@ pub enum RecordError {
     Probe(#[from] crate::probe::ProbeError),
     #[error("policy inference failed: {0}")]
     Policy(#[from] candle_core::Error),
+    #[error("the attribution view failed: {0}")]
+    Attribution(String),
 
     #[error(
         "the recording {path} could not be written completely: {reason}; nothing was left under that name"
@@ -810,6 +846,7 @@ pub fn record(
         .collect();
     let mut session = Session::new(rec, specs, opts.config)?;
     session.set_start_state(opts.start.map(std::sync::Arc::new));
+    session.set_attribution(opts.attribution)?;
     let mut episodes_done = 0;
     let mut interrupted = false;
     'episodes: for k in 0..opts.episodes {
