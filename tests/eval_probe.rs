@@ -244,6 +244,33 @@ fn probe_writes_probe_json_and_figures() {
         "{probes}"
     );
     assert_eq!(probed.report.runs[0].episodes, 9);
+    // Where z looks around the first trigger: files, and the four series add up to the shift
+    // (the triggered joint + 7 × the others' mean + torso + goal = ‖z − z(0)‖, completeness).
+    for path in [
+        opts.out.join("onset-attribution.json"),
+        opts.out.join("onset-attribution.md"),
+        opts.out.join("probe_onset_attribution-encoder.png"),
+    ] {
+        assert!(path.exists() && probed.written.contains(&path), "{path:?}");
+    }
+    let onset = &probed.onset[0];
+    assert_eq!(onset.offsets.len(), 61);
+    assert!(
+        onset.episodes > 0,
+        "a severe episode of an untrained policy triggers"
+    );
+    for (i, shift) in onset.shift.iter().enumerate() {
+        if !shift.is_finite() {
+            continue;
+        }
+        let m = |g: usize| onset.mean[g][i];
+        let sum = m(0) + 7.0 * m(1) + m(2) + m(3);
+        assert!(
+            (sum - shift).abs() <= 0.01 * shift + 1e-3,
+            "offset {}: groups add to {sum}, shift {shift}",
+            onset.offsets[i]
+        );
+    }
 }
 
 #[test]

@@ -16,6 +16,7 @@ mod cv;
 mod figures;
 mod file;
 mod linear;
+mod onset;
 mod pca;
 pub mod pipeline;
 
@@ -24,6 +25,7 @@ pub use cv::{CvScores, LatencyPoint, MeanSd, ProbeCv, ProbeReport, episode_folds
 pub use figures::figures;
 pub use file::{ProbeFile, fit_probes, save};
 pub use linear::{LinearProbe, ProbeResult, Scores, Standardizer, scores, split_by_episode};
+pub use onset::{ONSET_GROUPS, ONSET_RANGE, OnsetAttribution, onset_attribution, onset_figure};
 pub use pca::PcaBasis;
 
 use std::path::PathBuf;

@@ -4,7 +4,10 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{ProbeError, ProbeReport, collect, figures, fit_probes, probe_cv, save};
+use super::{
+    OnsetAttribution, ProbeError, ProbeReport, collect, figures, fit_probes, onset_attribution,
+    onset_figure, probe_cv, save,
+};
 use crate::damage::Condition;
 use crate::lane::Actor;
 use crate::policy::{EncoderKind, Policy};
@@ -57,6 +60,8 @@ pub struct ProbeRun {
     pub probes: Vec<(String, String)>,
     /// The cross-validated report (also written as probe-cv.json and probe-cv.md).
     pub report: ProbeReport,
+    /// Where z looks around the first trigger, per checkpoint (onset-attribution.json).
+    pub onset: Vec<OnsetAttribution>,
     /// Every file written, in order.
     pub written: Vec<PathBuf>,
 }
@@ -82,6 +87,7 @@ pub fn run(opts: &ProbeOptions) -> Result<ProbeRun, ProbeError> {
     let mut run = ProbeRun {
         probes: Vec::new(),
         report: ProbeReport { runs: Vec::new() },
+        onset: Vec::new(),
         written: Vec::new(),
     };
     for (dir, actor) in opts.checkpoints.iter().zip(&actors) {
@@ -116,8 +122,16 @@ pub fn run(opts: &ProbeOptions) -> Result<ProbeRun, ProbeError> {
             opts.seed,
         )?;
         run.report.runs.push(cv);
+        run.onset.push(onset_attribution(
+            actor,
+            &label,
+            opts.episodes,
+            opts.max_steps,
+            opts.seed,
+        )?);
     }
     run.written.extend(write_report(&run.report, &opts.out)?);
+    run.written.extend(write_onset(&run.onset, &opts.out)?);
     Ok(run)
 }
 
@@ -128,6 +142,36 @@ fn joint_names(world: &crate::config::GaitConfig) -> Result<Vec<String>, ProbeEr
         .iter()
         .map(|a| a.joint.clone())
         .collect())
+}
+
+/// onset-attribution.json, onset-attribution.md and one probe_onset_attribution-MODEL.png per
+/// model (its seeds pooled) under `out`.
+fn write_onset(runs: &[OnsetAttribution], out: &Path) -> Result<Vec<PathBuf>, ProbeError> {
+    let json = serde_json::to_vec_pretty(runs).map_err(|e| ProbeError::Fit {
+        what: "onset-attribution.json".into(),
+        reason: e.to_string(),
+    })?;
+    let json_path = out.join("onset-attribution.json");
+    crate::policy::checkpoint::write_atomic(&json_path, &json)?;
+    let mut written = vec![json_path];
+    let mut groups: Vec<(String, Vec<OnsetAttribution>)> = Vec::new();
+    for run in runs {
+        let g = crate::eval::seeds::group_of(&run.label);
+        match groups.iter_mut().find(|(name, _)| *name == g) {
+            Some((_, rs)) => rs.push(run.clone()),
+            None => groups.push((g, vec![run.clone()])),
+        }
+    }
+    let mut md = String::new();
+    for (group, rs) in &groups {
+        let png = out.join(format!("probe_onset_attribution-{group}.png"));
+        md += &format!("### {group}\n\n{}\n", onset_figure(rs, &png)?);
+        written.push(png);
+    }
+    let md_path = out.join("onset-attribution.md");
+    crate::policy::checkpoint::write_atomic(&md_path, md.as_bytes())?;
+    written.push(md_path);
+    Ok(written)
 }
 
 /// probe-cv.json, probe-cv.md and probe_latency.png under `out`.

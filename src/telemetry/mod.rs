@@ -1195,9 +1195,8 @@ impl AntLogger {
     }
 }
 
-/// Interpolation points of the live attribution: 32 keep completeness within 0.1 % of the
-/// shift on the bundled LSTM and cost 0.7 ms a step (docs/debugger.md).
-pub const ATTRIBUTION_POINTS: usize = 32;
+/// Interpolation points of the live attribution.
+pub const ATTRIBUTION_POINTS: usize = crate::explain::SHIFT_POINTS;
 
 impl AntLogger {
     /// Why z moved at this step: the attribution of ‖z − z(0)‖ as a feature group × window slot
