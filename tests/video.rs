@@ -118,6 +118,23 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
     ];
     video(&[&fork[..], &size].concat(), &forked);
     assert_eq!(probe(&forked, "width,height,nb_read_frames"), "320,240,20");
+    // From a state saved before step 20 of a 30-step episode: the 10 steps left, 10 frames.
+    let state = dir.path().join("state.json");
+    let lstm = concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/encoder-lstm");
+    let saved = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["rollout", "--checkpoint", lstm, "--condition", "severe", "--seed", "3"])
+        .args(["--episodes", "1", "--max-steps", "30", "--save-state-at", "20"])
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert!(saved.status.success(), "{}", String::from_utf8_lossy(&saved.stderr));
+    let resumed = dir.path().join("resumed.mp4");
+    let from_state = ["--checkpoint", lstm, "--max-steps", "30", "--init-state"];
+    video(
+        &[&from_state[..], &[state.to_str().unwrap()], &size].concat(),
+        &resumed,
+    );
+    assert_eq!(probe(&resumed, "width,height,nb_read_frames"), "320,240,10");
     // Bad sizes are refused before anything is written.
     let bad = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
         .args(["video", "--width", "321", "--out"])
