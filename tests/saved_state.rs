@@ -39,6 +39,16 @@ fn assert_close(a: &Value, b: &Value, tol: f64, at: &str) {
     }
 }
 
+/// The checkpoint's episode from a state file.
+fn from_state(file: &Path) -> Result<Vec<Value>, String> {
+    rollout(&[
+        "--checkpoint",
+        CHECKPOINT,
+        "--init-state",
+        file.to_str().unwrap(),
+    ])
+}
+
 fn saved_episode(dir: &Path) -> (Vec<Value>, std::path::PathBuf) {
     let file = dir.join("state.json");
     let rows = rollout(&[
@@ -117,13 +127,7 @@ fn the_policy_from_a_saved_state_continues_its_episode() {
     // The window travels with the state: the LSTM sees the same 16 steps and acts the same.
     let dir = tempfile::tempdir().unwrap();
     let (rows, file) = saved_episode(dir.path());
-    let resumed = rollout(&[
-        "--checkpoint",
-        CHECKPOINT,
-        "--init-state",
-        file.to_str().unwrap(),
-    ])
-    .unwrap();
+    let resumed = from_state(&file).unwrap();
     assert_eq!(resumed.len(), rows.len() - K);
     for (r, orig) in resumed.iter().zip(&rows[K..]) {
         for key in ["qpos", "action", "fatigue", "reward"] {
@@ -234,13 +238,7 @@ fn bad_state_files_are_clear_errors() {
         serde_json::json!({"qpos": good["qpos"], "qvel": good["qvel"]}).to_string(),
     )
     .unwrap();
-    let err = rollout(&[
-        "--checkpoint",
-        CHECKPOINT,
-        "--init-state",
-        bare.to_str().unwrap(),
-    ])
-    .unwrap_err();
+    let err = from_state(&bare).unwrap_err();
     assert!(err.contains("needs --condition"), "{err}");
     // Saving past the episode's end says so, and writes nothing.
     let late = dir.path().join("late.json");

@@ -122,12 +122,31 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
     let state = dir.path().join("state.json");
     let lstm = concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/encoder-lstm");
     let saved = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args(["rollout", "--checkpoint", lstm, "--condition", "severe", "--seed", "3"])
-        .args(["--episodes", "1", "--max-steps", "30", "--save-state-at", "20"])
+        .args([
+            "rollout",
+            "--checkpoint",
+            lstm,
+            "--condition",
+            "severe",
+            "--seed",
+            "3",
+        ])
+        .args([
+            "--episodes",
+            "1",
+            "--max-steps",
+            "30",
+            "--save-state-at",
+            "20",
+        ])
         .arg(&state)
         .output()
         .unwrap();
-    assert!(saved.status.success(), "{}", String::from_utf8_lossy(&saved.stderr));
+    assert!(
+        saved.status.success(),
+        "{}",
+        String::from_utf8_lossy(&saved.stderr)
+    );
     let resumed = dir.path().join("resumed.mp4");
     let from_state = ["--checkpoint", lstm, "--max-steps", "30", "--init-state"];
     video(
