@@ -888,3 +888,62 @@ fn a_stalled_request_does_not_freeze_the_page() {
     }
     drop(stalled);
 }
+
+/// Every port `live --web` serves answers only loopback hosts (DNS rebinding reaches none of
+/// them), caps its connections and times out slow headers: a flood of half-open connections
+/// leaves the thread count bounded and the page answering once it passes.
+#[test]
+fn every_port_checks_host_and_bounds_connections() {
+    let (mut live, [port, viewer_port, grpc_port]) =
+        live_web(&[std::ffi::OsStr::new("--paused")], Stdio::null());
+    for p in [port, viewer_port, grpc_port] {
+        let evil = raw_http(
+            p,
+            "GET / HTTP/1.1\r\nHost: rebind.evil.example\r\nConnection: close\r\n\r\n",
+        );
+        assert!(evil.starts_with("HTTP/1.1 403"), "port {p}: {evil}");
+    }
+    let viewer = raw_http(
+        viewer_port,
+        &format!("GET / HTTP/1.1\r\nHost: 127.0.0.1:{viewer_port}\r\nConnection: close\r\n\r\n"),
+    );
+    assert!(
+        viewer.starts_with("HTTP/1.1 200"),
+        "{}",
+        &viewer[..viewer.len().min(200)]
+    );
+    let threads = || {
+        std::fs::read_dir(format!("/proc/{}/task", live.0.id()))
+            .unwrap()
+            .count()
+    };
+    let before = threads();
+    // 300 connections that send half a header and wait.
+    let flood: Vec<std::net::TcpStream> = (0..300)
+        .filter_map(|_| {
+            let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
+            use std::io::Write;
+            s.write_all(b"GET /state HTTP/1.1\r\n").ok()?;
+            Some(s)
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(500));
+    let during = threads();
+    eprintln!("threads: {before} before, {during} with 300 half-open connections");
+    assert!(during <= before + 70, "{before} → {during} threads");
+    // Past the header timeout (5 s) the slots are free again and the page answers.
+    std::thread::sleep(Duration::from_secs(6));
+    let state = raw_http(
+        port,
+        &format!("GET /state HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"),
+    );
+    assert!(state.starts_with("HTTP/1.1 200"), "{state}");
+    drop(flood);
+    let quit = post(port, r#"{"command":"quit"}"#);
+    assert!(quit.starts_with("HTTP/1.1 200"), "{quit}");
+    let deadline = Instant::now() + WAIT;
+    while live.0.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "Quit ended the session");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}

@@ -17,6 +17,8 @@ pub mod viewer;
 pub mod panel;
 
 #[cfg(feature = "web")]
+pub mod guard;
+#[cfg(feature = "web")]
 pub mod web;
 
 pub use breakpoint::{BreakHit, Breakpoint, BreakpointError};

@@ -155,11 +155,61 @@ pub enum WebError {
     Viewer(String),
 }
 
-/// The running web front-end: Rerun's web viewer and the control page's HTTP server.
+/// The public ports, each behind a [`super::guard::Guard`] (connection cap, header timeout
+/// and size, Host check on loopback), and the loopback ports of the servers behind them.
+pub struct Front {
+    guards: Vec<super::guard::Guard>,
+    pub control_backend: u16,
+    pub viewer_backend: u16,
+    pub grpc_backend: u16,
+}
+
+impl Front {
+    /// Binds the three public ports (a taken one is a clear error) and starts their guards;
+    /// the servers come up behind them after.
+    pub fn bind(options: &WebOptions) -> Result<Self, WebError> {
+        use super::guard::{Guard, GuardLimits, free_loopback_port};
+        let limits = GuardLimits::new(options.is_loopback());
+        let mut guards = Vec::new();
+        let mut backends = Vec::new();
+        for (what, port) in [
+            ("control page", options.port),
+            ("web viewer", options.viewer_port),
+            ("gRPC stream", options.grpc_port),
+        ] {
+            let addr = SocketAddr::new(options.bind, port);
+            let bind_error = |e: std::io::Error| WebError::Bind {
+                what,
+                addr,
+                reason: e.to_string(),
+            };
+            let listener = TcpListener::bind(addr).map_err(bind_error)?;
+            let backend = free_loopback_port().map_err(bind_error)?;
+            let to = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), backend);
+            guards.push(Guard::spawn(listener, to, limits.clone(), what).map_err(bind_error)?);
+            backends.push(backend);
+        }
+        Ok(Self {
+            guards,
+            control_backend: backends[0],
+            viewer_backend: backends[1],
+            grpc_backend: backends[2],
+        })
+    }
+
+    /// Connections open on each public port (control page, web viewer, gRPC).
+    pub fn open_connections(&self) -> Vec<usize> {
+        self.guards.iter().map(|g| g.open_connections()).collect()
+    }
+}
+
+/// The running web front-end: Rerun's web viewer and the control page's HTTP server, on
+/// loopback behind the [`Front`]'s guards.
 pub struct WebServer {
     options: WebOptions,
     control: tiny_http::Server,
     _viewer: re_web_viewer_server::WebViewerServer,
+    _front: Front,
     /// Checkpoint folders the page may open (the page never names an arbitrary path).
     checkpoints: Vec<PathBuf>,
 }
@@ -174,14 +224,17 @@ pub struct WebStats {
 }
 
 impl WebServer {
-    /// Starts the web viewer and binds the control page (the gRPC server is the stream's sink).
-    pub fn start(options: WebOptions, checkpoints: Vec<PathBuf>) -> Result<Self, WebError> {
-        let viewer = re_web_viewer_server::WebViewerServer::new(
-            &options.bind.to_string(),
-            options.viewer_port.into(),
-        )
-        .map_err(|e| WebError::Viewer(e.to_string()))?;
-        let addr = SocketAddr::new(options.bind, options.port);
+    /// Starts the web viewer and the control page behind `front` (the gRPC server is the
+    /// stream's sink, started on `front.grpc_backend`).
+    pub fn start(
+        options: WebOptions,
+        front: Front,
+        checkpoints: Vec<PathBuf>,
+    ) -> Result<Self, WebError> {
+        let viewer =
+            re_web_viewer_server::WebViewerServer::new("127.0.0.1", front.viewer_backend.into())
+                .map_err(|e| WebError::Viewer(e.to_string()))?;
+        let addr = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), front.control_backend);
         let control = tiny_http::Server::http(addr).map_err(|e| WebError::Bind {
             what: "control page",
             addr,
@@ -191,6 +244,7 @@ impl WebServer {
             options,
             control,
             _viewer: viewer,
+            _front: front,
             checkpoints,
         })
     }

@@ -245,14 +245,17 @@ pub(crate) fn live_web(
             options.bind
         );
     }
+    // The public ports behind guards (connection cap, header timeout, Host check); the
+    // servers themselves on loopback ports behind them.
+    let front = web::Front::bind(&options)?;
     let sink = Sink::Serve {
-        bind: options.bind,
-        port: options.grpc_port,
+        bind: std::net::Ipv4Addr::LOCALHOST.into(),
+        port: front.grpc_backend,
         save: args.save.clone(),
     };
     let (rec, _) = telemetry::open_titled(&sink, recording_id, roots, titles)?;
     let sim = app::SimHandle::spawn(rec, setup)?;
-    let server = web::WebServer::start(options.clone(), checkpoints)?;
+    let server = web::WebServer::start(options.clone(), front, checkpoints)?;
     eprintln!("control page:     {}", options.control_url());
     eprintln!("Rerun web viewer: {}", options.viewer_url());
     eprintln!("from another machine: {}", options.ssh_tunnel());
