@@ -552,6 +552,8 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
     let (status, stderr) = wait_exit(&mut live, "Quit");
     assert!(status.success(), "{stderr}");
     assert!(stderr.contains("control page:"), "{stderr}");
+    // Written as session.rrd.partial, renamed once flushed.
+    assert!(!dir.path().join("session.rrd.partial").exists());
     let chunks = read_rrd(&save);
     // The legs: per-step colours only, ankle_3 red from the step after the page failed it.
     common::assert_no_static_shadowing(&chunks);

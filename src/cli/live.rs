@@ -156,8 +156,18 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
         .map(|dir| gaitscope::eval::model_label(dir))
         .collect();
     let titles = telemetry::view_titles(&labels, &roots);
+    // --save writes NAME.partial and renames it once the session's data is flushed.
+    let save_file = args.save.as_deref().map(telemetry::PartialFile::new);
+    let save_path = save_file.as_ref().map(|f| f.partial().to_path_buf());
     let finished = if args.web {
-        live_web(&args, setup, checkpoints, &recording_id, &roots, &titles)?
+        live_web(
+            &args,
+            setup,
+            checkpoints,
+            &recording_id,
+            (&roots, &titles),
+            save_path,
+        )?
     } else {
         viewer::require_display("gaitscope live")?;
         let url = match &args.connect {
@@ -177,7 +187,7 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
         };
         let sink = Sink::Viewer {
             url,
-            save: args.save.clone(),
+            save: save_path,
         };
         let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
         let sim = app::SimHandle::spawn(rec, setup)?;
@@ -194,11 +204,24 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
         finished
     };
     // A viewer closed before the end leaves data unsent; the session's report still prints.
+    // The file is flushed before the viewer (a multi-sink flushes in order), so it is whole
+    // then too; on any other error it stays under its .partial name.
     let (report, unflushed) = match finished {
         Ok(report) => (report, None),
         Err(app::LiveError::Unflushed { report, source }) => (*report, Some(source)),
-        Err(e) => return Err(e.into()),
+        Err(e) => {
+            if let Some(f) = &save_file {
+                eprintln!(
+                    "the session's file stays at {} (it may be incomplete)",
+                    f.partial().display()
+                );
+            }
+            return Err(e.into());
+        }
     };
+    if let Some(f) = &save_file {
+        f.rename_into_place()?;
+    }
     for s in &report.speeds {
         eprintln!(
             "sim at {}×: {:.1} of {:.0} env steps/s ({:.0} % of real time asked for) over {:.1} s",
@@ -226,8 +249,8 @@ pub(crate) fn live_web(
     setup: gaitscope::app::LiveSetup,
     checkpoints: Vec<PathBuf>,
     recording_id: &str,
-    roots: &[String],
-    titles: &[String],
+    (roots, titles): (&[String], &[String]),
+    save: Option<PathBuf>,
 ) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
     use gaitscope::app::{self, web};
     use gaitscope::telemetry::{self, Sink};
@@ -251,7 +274,7 @@ pub(crate) fn live_web(
     let sink = Sink::Serve {
         bind: std::net::Ipv4Addr::LOCALHOST.into(),
         port: front.grpc_backend,
-        save: args.save.clone(),
+        save,
     };
     let (rec, _) = telemetry::open_titled(&sink, recording_id, roots, titles)?;
     let sim = app::SimHandle::spawn(rec, setup)?;
@@ -286,8 +309,8 @@ pub(crate) fn live_web(
     _: gaitscope::app::LiveSetup,
     _: Vec<PathBuf>,
     _: &str,
-    _: &[String],
-    _: &[String],
+    _: (&[String], &[String]),
+    _: Option<PathBuf>,
 ) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
     bail!(
         "this gaitscope was built without the `web` feature (Rerun's web viewer and the control page); build with the default features"

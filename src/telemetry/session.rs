@@ -751,14 +751,15 @@ pub enum RecordError {
 /// The longest a recording's final flush to its file may take.
 const FILE_FLUSH_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
 
-/// A recording file being written under `<name>.partial`, renamed to `<name>` when complete.
-struct PartialFile {
+/// A recording file being written under `<name>.partial`, renamed to `<name>` when complete:
+/// a failed write (a full disk) never leaves a truncated file under the name asked for.
+pub struct PartialFile {
     path: std::path::PathBuf,
     partial: std::path::PathBuf,
 }
 
 impl PartialFile {
-    fn new(path: &std::path::Path) -> Self {
+    pub fn new(path: &std::path::Path) -> Self {
         let mut name = path.file_name().unwrap_or_default().to_os_string();
         name.push(".partial");
         Self {
@@ -767,9 +768,14 @@ impl PartialFile {
         }
     }
 
+    /// Where the sink writes until the file is complete.
+    pub fn partial(&self) -> &std::path::Path {
+        &self.partial
+    }
+
     /// Renames the flushed file into place (the writer finishes it, footer included, when the
     /// stream closes; the open file keeps those writes across the rename).
-    fn rename_into_place(&self) -> Result<(), RecordError> {
+    pub fn rename_into_place(&self) -> Result<(), RecordError> {
         std::fs::rename(&self.partial, &self.path).map_err(|e| RecordError::Incomplete {
             path: self.path.clone(),
             reason: format!("renaming {} into place: {e}", self.partial.display()),
