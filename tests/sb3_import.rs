@@ -217,6 +217,28 @@ fn replace_bytes(bytes: Vec<u8>, from: &[u8], to: &[u8]) -> Vec<u8> {
     bytes
 }
 
+/// Peak memory a refused archive may cost the importer (measured: 11–14 MB for every case; the
+/// zip bomb's entry is refused from the archive's directory before inflating, the billion
+/// laughs by the pickle guard's dry run before anything is built).
+const HOSTILE_PEAK_MB: f64 = 64.0;
+
+/// Runs `cmd` to its end: its exit code and its own peak resident memory (wait4's rusage).
+fn peak_memory(mut cmd: std::process::Command) -> (i32, f64) {
+    let child = cmd.spawn().unwrap();
+    let mut status = 0;
+    // SAFETY: plain C structs, zeroed, filled by wait4 for the child we just spawned.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    let pid = unsafe { libc::wait4(child.id() as i32, &mut status, 0, &mut usage) };
+    assert_eq!(pid, child.id() as i32, "wait4");
+    let code = if libc::WIFEXITED(status) {
+        libc::WEXITSTATUS(status)
+    } else {
+        128 + libc::WTERMSIG(status)
+    };
+    // Linux reports ru_maxrss in KiB.
+    (code, usage.ru_maxrss as f64 / 1024.0)
+}
+
 #[test]
 fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
     let lstm = std::fs::read(fixture("sb3_lstm.zip")).unwrap();
@@ -334,6 +356,23 @@ fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
             "objects nest deeper than 256",
         ),
         (
+            // A memo "billion laughs" ahead of the state dict: a list fetched twice into a
+            // tuple, memoised, 40 times over (2⁴⁰ objects if built), then popped.
+            "billion laughs",
+            in_policy(&baseline, &|pkl| {
+                let mut laughs = pkl[..2].to_vec();
+                laughs.extend([b']', b'q', 0]);
+                for i in 0..40u8 {
+                    laughs.extend([b'h', i, b'h', i, 0x86, b'q', i + 1]);
+                }
+                laughs.push(b'0');
+                laughs.extend_from_slice(&pkl[2..]);
+                laughs
+            }),
+            ImportEncoder::Auto,
+            "grows past 4000000 parts",
+        ),
+        (
             // A zip bomb: policy.pth inflates to 300 MB of zeros from a few hundred KB.
             "zip bomb",
             {
@@ -374,6 +413,27 @@ fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
             .map(|d| d.flatten().map(|e| e.file_name()).collect())
             .unwrap_or_default();
         assert!(leftovers.is_empty(), "{what}: left {leftovers:?}");
+        // The same through the CLI, in a process of its own: its peak memory stays under the
+        // bound whatever the archive claims.
+        let encoder = match encoder {
+            ImportEncoder::Auto => "auto",
+            ImportEncoder::None => "none",
+            ImportEncoder::Lstm => "lstm",
+        };
+        let mut cli = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"));
+        cli.args(["import-sb3", "--encoder", encoder, "--out"])
+            .arg(&out)
+            .arg(&zip)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null());
+        let (code, peak_mb) = peak_memory(cli);
+        eprintln!("{what}: exit {code}, peak RSS {peak_mb:.0} MB");
+        assert_eq!(code, 1, "{what}: a clean refusal, not a panic or an abort");
+        assert!(
+            peak_mb < HOSTILE_PEAK_MB,
+            "{what}: {peak_mb:.0} MB, the bound is {HOSTILE_PEAK_MB} MB"
+        );
+        assert!(!out.exists(), "{what}: a half-written checkpoint (CLI)");
     }
     // An existing folder is never overwritten.
     let out = tmp.path().join("taken");
