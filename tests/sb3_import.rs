@@ -223,6 +223,10 @@ fn replace_bytes(bytes: Vec<u8>, from: &[u8], to: &[u8]) -> Vec<u8> {
 const HOSTILE_PEAK_MB: f64 = 64.0;
 
 /// Runs `cmd` to its end: its exit code and its own peak resident memory (wait4's rusage).
+#[expect(
+    clippy::zombie_processes,
+    reason = "wait4 reaps the child, returning its rusage with it"
+)]
 fn peak_memory(mut cmd: std::process::Command) -> (i32, f64) {
     let child = cmd.spawn().unwrap();
     let mut status = 0;
