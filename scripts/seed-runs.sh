@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The evidence runs (issue 31): seeds 2-5 of every model, 500k steps each, the protocol of seed 0
 # (`gaitscope train` defaults); seeds 0-1 (and baseline-s2) are done. Then the LSTM with the
-# dynamics auxiliary loss (issue 33, `--aux dynamics`), seeds 0-2, the same protocol. Two
+# dynamics auxiliary loss (issue 33, `--aux dynamics`), seeds 0-2, the same protocol; lane 1
+# also runs issue 31's refill-cost measurement (scripts/refill-cost.sh, ~450k `none` steps). Two
 # lanes, one per core, at nice 19, so they only take what foreground work leaves. Each run
 # resumes from its last checkpoint (every 10,000 steps), so `start` is the same command on the
 # first day and on a fresh machine after a clone. The replay buffers live outside the work tree
@@ -28,7 +29,7 @@ steps=500000
 lane_runs() {
   case $1 in
     0) echo "encoder-lstm-s2 encoder-lstm-s3 encoder-lstm-s4 baseline-s5 encoder-lstm-aux-s0 encoder-lstm-aux-s2" ;;
-    1) echo "encoder-mlp-s2 baseline-s3 encoder-mlp-s3 baseline-s4 encoder-mlp-s4 encoder-mlp-s5 encoder-lstm-s5 encoder-lstm-aux-s1" ;;
+    1) echo "encoder-mlp-s2 baseline-s3 encoder-mlp-s3 refill-cost baseline-s4 encoder-mlp-s4 encoder-mlp-s5 encoder-lstm-s5 encoder-lstm-aux-s1" ;;
   esac
 }
 
@@ -58,6 +59,14 @@ run_lane() {
   local core=$1 run dir
   for run in $(lane_runs "$core"); do
     [ -e "$state/stop" ] && return 0
+    if [ "$run" = refill-cost ]; then
+      # Issue 31's measurement of a refilled resume (scripts/refill-cost.sh): resumable too.
+      echo "$(date -u +%FT%TZ) lane $core: refill-cost"
+      GAITSCOPE_BIN="$state/gaitscope" TRAINER_PID_FILE="$state/trainer-$core.pid" \
+        STOP_FILE="$state/stop" bash "$root/scripts/refill-cost.sh" run "$core" ||
+        echo "$(date -u +%FT%TZ) lane $core: refill-cost exited with $?"
+      continue
+    fi
     dir="$seeds_dir/$run"
     if [ "$(steps_done "$run")" -ge "$steps" ]; then
       continue
@@ -121,6 +130,7 @@ case "${1:-status}" in
   status)
     for core in 0 1; do
       for run in $(lane_runs "$core"); do
+        [ "$run" = refill-cost ] && { echo "refill-cost        (scripts/refill-cost.sh report)"; continue; }
         printf '%-18s %7s / %s steps\n' "$run" "$(steps_done "$run")" "$steps"
       done
     done

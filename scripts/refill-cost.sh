@@ -1,0 +1,131 @@
+#!/usr/bin/env bash
+# What a resume without its replay buffer costs (issue 31), for the cheap `none` encoder:
+# per seed (0-2), "straight" trains 0 → 100k steps keeping its buffer; "refilled" is the same
+# run's 50k checkpoint resumed without one (train refills --refill transitions with the current
+# policy, no updates, then goes on) to 100k. Both continue from one 50k state, so the only
+# difference is the buffer. `report` compares success and return over the last 20k steps.
+#
+#   scripts/refill-cost.sh run [CORE]   # resumable; nice 19, pinned to CORE (default 1)
+#   scripts/refill-cost.sh report       # the table, markdown (docs/training.md)
+#
+# HALF / STEPS / LAST override 50000 / 100000 / 20000 (a quick trial of the script itself).
+set -euo pipefail
+
+root=$(cd "$(dirname "$0")/.." && pwd)
+out="${REFILL_COST_DIR:-$root/checkpoints/refill-cost}"
+replay_root="${GAITSCOPE_REPLAY_ROOT:-$HOME/.cache/gaitscope/replay}/refill-cost"
+half="${HALF:-50000}"
+steps="${STEPS:-100000}"
+last="${LAST:-20000}"
+seeds=(0 1 2)
+
+steps_done() {
+  local json="$1/checkpoint.json"
+  [ -f "$json" ] || { echo 0; return; }
+  python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["steps_done"])' "$json"
+}
+
+# train CORE ARGS...: one trainer, nice 19, pinned. Under scripts/seed-runs.sh (which sets
+# TRAINER_PID_FILE and STOP_FILE) its pid is where `seed-runs.sh stop|pause|cont` finds it, and
+# a stop ends the job before the next trainer.
+train() {
+  local core=$1
+  shift
+  if [ -n "${STOP_FILE:-}" ] && [ -e "$STOP_FILE" ]; then exit 0; fi
+  nice -n 19 taskset -c "$core" "$bin" train "$@" --quiet &
+  local pid=$!
+  if [ -n "${TRAINER_PID_FILE:-}" ]; then echo "$pid" >"$TRAINER_PID_FILE"; fi
+  local code=0
+  wait "$pid" || code=$?
+  if [ -n "${TRAINER_PID_FILE:-}" ]; then rm -f "$TRAINER_PID_FILE"; fi
+  if [ -n "${STOP_FILE:-}" ] && [ -e "$STOP_FILE" ]; then exit 0; fi
+  return "$code"
+}
+
+case "${1:-}" in
+  run)
+    core="${2:-1}"
+    if [ -n "${GAITSCOPE_BIN:-}" ]; then
+      bin="$GAITSCOPE_BIN"   # seed-runs.sh's copy
+    else
+      (cd "$root" && ${CARGO:-cargo} build --release --quiet)
+      # A copy, so that rebuilding in the work tree never swaps the binary under a trainer.
+      mkdir -p "$root/.deps/refill-cost"
+      bin="$root/.deps/refill-cost/gaitscope"
+      cp "${CARGO_TARGET_DIR:-$root/target}/release/gaitscope" "$bin"
+    fi
+    mkdir -p "$out"
+    for seed in "${seeds[@]}"; do
+      a="$out/none-s$seed-straight" b="$out/none-s$seed-refilled"
+      if [ ! -d "$b" ]; then
+        # The shared first half.
+        if [ -f "$a/checkpoint.json" ]; then
+          train "$core" --resume "$a" --steps "$half" --replay-dir "$replay_root/straight-s$seed"
+        else
+          train "$core" --encoder none --seed "$seed" --out "$a" --steps "$half" \
+            --replay-dir "$replay_root/straight-s$seed"
+        fi
+        [ "$(steps_done "$a")" -eq "$half" ] || { echo "$a is not at $half steps" >&2; exit 1; }
+        # The branch: the folder as saved at the half, without a buffer of its own.
+        cp -r "$a" "$b.partial"
+        rm -f "$b.partial/replay.bin"
+        mv "$b.partial" "$b"
+      fi
+      [ "$(steps_done "$a")" -ge "$steps" ] ||
+        train "$core" --resume "$a" --steps "$steps" --replay-dir "$replay_root/straight-s$seed"
+      # An empty replay dir the first time: the resume refills. After an interruption the
+      # branch has a buffer of its own there and restores it.
+      [ "$(steps_done "$b")" -ge "$steps" ] ||
+        train "$core" --resume "$b" --steps "$steps" --replay-dir "$replay_root/refilled-s$seed"
+    done
+    echo "refill-cost runs done: scripts/refill-cost.sh report"
+    ;;
+  report)
+    python3 - "$out" "$steps" "$last" "${seeds[@]}" <<'EOF'
+import json, statistics, sys
+out, steps, last = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+seeds = sys.argv[4:]
+
+def tail(run):
+    eps = []
+    with open(f"{out}/{run}/metrics.jsonl") as f:
+        for line in f:
+            try:
+                m = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if "charts/episodic_return" in m and m["global_step"] > steps - last:
+                eps.append((bool(m["charts/success"]), m["charts/episodic_return"]))
+    return eps
+
+def refills(run):
+    """Each resume: at which step, the buffer restored or refilled, and how many."""
+    state = json.load(open(f"{out}/{run}/train_state.json"))
+    return "; ".join(
+        f"{r['step']:,}: {r['buffer']}"
+        + (f" {r['refill_transitions']:,}" if r["buffer"] != "restored" else "")
+        for r in state.get("resumes", [])
+    ) or "none"
+
+print(f"| seed | run | episodes in the last {last:,} steps | success | mean return | resume record |")
+print("|---|---|---:|---:|---:|---|")
+means = {"straight": [], "refilled": []}
+for seed in seeds:
+    for kind in ["straight", "refilled"]:
+        run = f"none-s{seed}-{kind}"
+        eps = tail(run)
+        succ = 100 * sum(s for s, _ in eps) / max(len(eps), 1)
+        ret = statistics.mean(r for _, r in eps) if eps else float("nan")
+        means[kind].append((succ, ret))
+        print(f"| {seed} | {kind} | {len(eps)} | {succ:.1f} % | {ret:.1f} | {refills(run)} |")
+for kind, rows in means.items():
+    if rows:
+        print(f"| mean | {kind} | | {statistics.mean(s for s, _ in rows):.1f} % | "
+              f"{statistics.mean(r for _, r in rows):.1f} | |")
+EOF
+    ;;
+  *)
+    sed -n '2,13p' "$0"
+    exit 2
+    ;;
+esac
