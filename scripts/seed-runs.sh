@@ -110,6 +110,9 @@ case "${1:-status}" in
     # A copy, so later builds never change the binary under a running trainer.
     cp "${CARGO_TARGET_DIR:-$root/target}/release/gaitscope" "$state/gaitscope.tmp"
     mv "$state/gaitscope.tmp" "$state/gaitscope"
+    # Its debug info (file and line in a backtrace) lives beside it (docs/build.md).
+    dwp="${CARGO_TARGET_DIR:-$root/target}/release/gaitscope.dwp"
+    if [ -f "$dwp" ]; then cp "$dwp" "$state/gaitscope.dwp"; fi
     for core in 0 1; do
       nohup bash "$0" _lane "$core" >>"$state/lane-$core.log" 2>&1 &
     done
