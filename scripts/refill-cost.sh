@@ -12,6 +12,8 @@
 set -euo pipefail
 
 root=$(cd "$(dirname "$0")/.." && pwd)
+# The build cache .ci/run and make use, outside the work tree.
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/gaitscope/target}"
 out="${REFILL_COST_DIR:-$root/checkpoints/refill-cost}"
 replay_root="${GAITSCOPE_REPLAY_ROOT:-$HOME/.cache/gaitscope/replay}/refill-cost"
 half="${HALF:-50000}"

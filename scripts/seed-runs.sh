@@ -18,6 +18,8 @@
 set -euo pipefail
 
 root=$(cd "$(dirname "$0")/.." && pwd)
+# The build cache .ci/run and make use, outside the work tree.
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/gaitscope/target}"
 seeds_dir="$root/checkpoints/seeds"
 state="$root/.deps/seed-runs"   # git-ignored: the binary copy, pids and logs
 replay_root="${GAITSCOPE_REPLAY_ROOT:-$HOME/.cache/gaitscope/replay}"
