@@ -49,9 +49,9 @@ fn from_state(file: &Path) -> Result<Vec<Value>, String> {
     ])
 }
 
-fn saved_episode(dir: &Path) -> (Vec<Value>, std::path::PathBuf) {
-    let file = dir.join("state.json");
-    let rows = rollout(&[
+/// The checkpoint's severe episode from seed 3, its state before step `k` saved to `file`.
+fn save_at(k: usize, file: &Path) -> Result<Vec<Value>, String> {
+    rollout(&[
         "--checkpoint",
         CHECKPOINT,
         "--condition",
@@ -61,10 +61,14 @@ fn saved_episode(dir: &Path) -> (Vec<Value>, std::path::PathBuf) {
         "--seed",
         "3",
         "--save-state-at",
-        &K.to_string(),
+        &k.to_string(),
         file.to_str().unwrap(),
     ])
-    .unwrap();
+}
+
+fn saved_episode(dir: &Path) -> (Vec<Value>, std::path::PathBuf) {
+    let file = dir.join("state.json");
+    let rows = save_at(K, &file).unwrap();
     assert!(rows.len() > K + 20, "{} steps", rows.len());
     (rows, file)
 }
@@ -242,18 +246,7 @@ fn bad_state_files_are_clear_errors() {
     assert!(err.contains("needs --condition"), "{err}");
     // Saving past the episode's end says so, and writes nothing.
     let late = dir.path().join("late.json");
-    let err = rollout(&[
-        "--checkpoint",
-        CHECKPOINT,
-        "--condition",
-        "severe",
-        "--episodes",
-        "1",
-        "--save-state-at",
-        "400",
-        late.to_str().unwrap(),
-    ])
-    .unwrap_err();
+    let err = save_at(400, &late).unwrap_err();
     assert!(err.contains("before step 400: no state to save"), "{err}");
     assert!(!late.exists());
 }
