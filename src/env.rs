@@ -451,18 +451,17 @@ impl AntEnv {
         let mut damage = self.damage.clone();
         damage.restore_save(&saved.damage)?;
         let mut active = Vec::with_capacity(saved.pushes.len());
+        // Each push was checked as it was read (a `Push` always is); its progress is not.
         for p in &saved.pushes {
-            let checked = Push::new(&p.push.body, p.push.force, p.push.steps)
-                .map_err(|e| EnvError::BadState(e.to_string()))?;
-            if !(1..=checked.steps).contains(&p.remaining) {
+            if !(1..=p.push.steps).contains(&p.remaining) {
                 return Err(EnvError::BadState(format!(
                     "a pending push has {} steps left of its {}",
-                    p.remaining, checked.steps
+                    p.remaining, p.push.steps
                 )));
             }
             active.push(ActivePush {
-                body: self.body_id(&checked.body)?,
-                push: checked,
+                body: self.body_id(&p.push.body)?,
+                push: p.push.clone(),
                 start: p.start,
                 remaining: p.remaining,
                 source: None,
@@ -659,11 +658,6 @@ impl AntEnv {
     /// The pushes that acted during the last step.
     pub fn last_pushes(&self) -> &[PushRecord] {
         &self.pushes.last_step
-    }
-
-    /// Pushes applied and not yet over (they act from the next step on).
-    pub fn pushes_pending(&self) -> usize {
-        self.pushes.active.len()
     }
 
     /// The current observation (what the last reset or step returned).

@@ -178,19 +178,10 @@ pub fn integrated_gradients(
         )));
     }
     let device = Device::Cpu;
-    let alphas: Vec<f32> = (0..steps)
-        .map(|k| (k as f32 + 0.5) / steps as f32)
-        .collect();
-    let scaled = |x: &[f32]| -> Vec<f32> {
-        alphas
-            .iter()
-            .flat_map(|&a| x.iter().map(move |&v| a * v))
-            .collect()
-    };
     let window_var = uses_window
-        .then(|| Var::from_vec(scaled(window), (steps, t_len, entry), &device))
+        .then(|| Var::from_vec(path_points(window, steps), (steps, t_len, entry), &device))
         .transpose()?;
-    let obs_var = Var::from_vec(scaled(obs), (steps, obs_dim), &device)?;
+    let obs_var = Var::from_vec(path_points(obs, steps), (steps, obs_dim), &device)?;
     let input = PolicyInput {
         window: window_var.as_ref().map(|v| v.as_tensor().clone()),
         obs: obs_var.as_tensor().clone(),
@@ -219,28 +210,16 @@ pub fn integrated_gradients(
     let mut obs_attribution = Vec::with_capacity(dims);
     for d in 0..dims {
         let grads = outputs.narrow(D::Minus1, d, 1)?.sum_all()?.backward()?;
-        // Mean gradient along the path × (input − baseline).
-        let mean_grad = |var: &Var, x: &[f32], len: usize| -> Result<Vec<f64>, ExplainError> {
-            let g = match grads.get(var) {
-                Some(g) => g.flatten_all()?.to_vec1::<f32>()?,
-                None => vec![0.0; steps * len],
-            };
-            Ok((0..len)
-                .map(|i| {
-                    let sum: f64 = (0..steps).map(|k| f64::from(g[k * len + i])).sum();
-                    sum / steps as f64 * f64::from(x[i])
-                })
-                .collect())
-        };
+        let mean_grad = |var: &Var, x: &[f32]| mean_gradient_times_input(&grads, var, x, steps);
         attribution.push(match &window_var {
-            Some(var) => mean_grad(var, window, window_len)?
+            Some(var) => mean_grad(var, window)?
                 .chunks(entry)
                 .map(<[f64]>::to_vec)
                 .collect(),
             None => Vec::new(),
         });
         if target == Target::Action {
-            obs_attribution.push(mean_grad(&obs_var, obs, obs_dim)?);
+            obs_attribution.push(mean_grad(&obs_var, obs)?);
         }
     }
     Ok(Attribution {
@@ -371,13 +350,7 @@ pub fn z_shift_attribution(
         obs: Tensor::zeros((1, obs_dim), candle_core::DType::F32, &device)?,
     };
     let z0 = forward(policy, &zero, Target::Z)?;
-    let scaled: Vec<f32> = (0..steps)
-        .flat_map(|k| {
-            let a = (k as f32 + 0.5) / steps as f32;
-            window.iter().map(move |&v| a * v)
-        })
-        .collect();
-    let var = Var::from_vec(scaled, (steps, t_len, entry), &device)?;
+    let var = Var::from_vec(path_points(window, steps), (steps, t_len, entry), &device)?;
     let input = PolicyInput {
         window: Some(var.as_tensor().clone()),
         obs: Tensor::zeros((steps, obs_dim), candle_core::DType::F32, &device)?,
@@ -392,17 +365,7 @@ pub fn z_shift_attribution(
         .affine(1.0, 1e-12)?
         .sqrt()?;
     let grads = norm.sum_all()?.backward()?;
-    let g = match grads.get(&var) {
-        Some(g) => g.flatten_all()?.to_vec1::<f32>()?,
-        None => vec![0.0; steps * window.len()],
-    };
-    let len = window.len();
-    let flat: Vec<f64> = (0..len)
-        .map(|i| {
-            let sum: f64 = (0..steps).map(|k| f64::from(g[k * len + i])).sum();
-            sum / steps as f64 * f64::from(window[i])
-        })
-        .collect();
+    let flat = mean_gradient_times_input(&grads, &var, window, steps)?;
     // The shift at the input itself.
     let at = PolicyInput {
         window: Some(Tensor::from_vec(
@@ -425,6 +388,37 @@ pub fn z_shift_attribution(
         shift,
         attribution: flat.chunks(entry).map(<[f64]>::to_vec).collect(),
     })
+}
+
+/// The path's points, one copy of `x` per midpoint α = (k + ½)/steps (the baseline is zero).
+fn path_points(x: &[f32], steps: usize) -> Vec<f32> {
+    (0..steps)
+        .flat_map(|k| {
+            let a = (k as f32 + 0.5) / steps as f32;
+            x.iter().map(move |&v| a * v)
+        })
+        .collect()
+}
+
+/// Each feature's integrated gradient: `var`'s gradient averaged over the path's points, times
+/// the input (minus the zero baseline).
+fn mean_gradient_times_input(
+    grads: &candle_core::backprop::GradStore,
+    var: &Var,
+    x: &[f32],
+    steps: usize,
+) -> Result<Vec<f64>, ExplainError> {
+    let len = x.len();
+    let g = match grads.get(var) {
+        Some(g) => g.flatten_all()?.to_vec1::<f32>()?,
+        None => vec![0.0; steps * len],
+    };
+    Ok((0..len)
+        .map(|i| {
+            let sum: f64 = (0..steps).map(|k| f64::from(g[k * len + i])).sum();
+            sum / steps as f64 * f64::from(x[i])
+        })
+        .collect())
 }
 
 /// z or tanh(μ) for a batch, weights frozen (gradients reach the inputs only).

@@ -400,7 +400,6 @@ pub fn run_policy_episode(
     if let Start::State(init, condition) = start {
         start_lane_from(&mut lane, init, condition)?;
     }
-    let checkpoint = actor.checkpoint_dir().map(|_| actor.label());
     let mut saved = None;
     // Steps the lane to its episode's end, each step's line to `sink`; the return.
     let mut run = |lane: &mut Lane,
@@ -411,7 +410,7 @@ pub fn run_policy_episode(
         let mut episode_return = 0.0;
         while !lane.is_done() && stop_at.is_none_or(|k| lane.steps() < k) {
             if save_at == Some(lane.steps()) && name == "main" {
-                *saved = Some(lane.save_state(seed, checkpoint.clone()));
+                *saved = Some(lane.save_state(actor, seed));
             }
             let record = lane.advance(actor, mode)?;
             episode_return += record.outcome.reward.total;

@@ -699,11 +699,12 @@ pub fn commands(
         if bodies.contains(&push.body) {
             Ok(())
         } else {
-            Err(format!(
-                "unknown body '{}' to push (the model's bodies: {})",
-                push.body,
-                bodies.join(", ")
-            ))
+            // The env's own refusal, as the sim thread would give it.
+            Err(crate::env::EnvError::NoSuchBody {
+                name: push.body.clone(),
+                known: bodies.join(", "),
+            }
+            .to_string())
         }
     };
     // An edit list, its joints and bodies checked by name: the parser and resolver the CLI uses.

@@ -28,14 +28,31 @@ pub enum PushError {
 }
 
 /// A force on a body's centre of mass for `steps` env steps, from the step it is applied
-/// before.
+/// before. Every `Push` is checked ([`Push::new`]), read from a file too.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "PushFields")]
 pub struct Push {
     /// A body of the model, by name (`torso`, `front_left_leg`, `aux_1`, …).
     pub body: String,
     /// Newtons, world frame.
     pub force: [f64; 3],
     pub steps: usize,
+}
+
+/// A push as written, before [`Push::new`] checks it.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PushFields {
+    body: String,
+    force: [f64; 3],
+    steps: usize,
+}
+
+impl TryFrom<PushFields> for Push {
+    type Error = PushError;
+    fn try_from(p: PushFields) -> Result<Self, PushError> {
+        Push::new(&p.body, p.force, p.steps)
+    }
 }
 
 impl Push {
@@ -193,5 +210,11 @@ mod tests {
         );
         // The limit itself is allowed.
         assert!("push:torso=1000,0,0@1000".parse::<Push>().is_ok());
+        // Read from a file (a saved state), a push is checked the same way.
+        let read = |json: &str| serde_json::from_str::<Push>(json).map_err(|e| e.to_string());
+        let ok = read(r#"{"body": "torso", "force": [0, 40, 0], "steps": 5}"#).unwrap();
+        assert_eq!(ok, "push:torso=0,40,0@5".parse().unwrap());
+        let err = read(r#"{"body": "torso", "force": [5000, 0, 0], "steps": 1}"#).unwrap_err();
+        assert!(err.contains("5000 N"), "{err}");
     }
 }

@@ -217,8 +217,10 @@ impl StartState {
 }
 
 impl Lane {
-    /// This lane's state before its next step, as a file holds it; `seed` is the episode's.
-    pub fn save_state(&self, seed: u64, checkpoint: Option<String>) -> SavedState {
+    /// This lane's state before its next step, as a file holds it: `actor` is who acts in it
+    /// (a checkpoint is named in the file), `seed` the episode's.
+    pub fn save_state(&self, actor: &super::Actor, seed: u64) -> SavedState {
+        let checkpoint = actor.checkpoint_dir().map(|_| actor.label());
         let env = self.env.save();
         let window = &self.run.window;
         let entry = window.entry_dim();

@@ -513,6 +513,8 @@ pub struct AntLogger {
     push_drawn: bool,
     /// Whether the attribution series' names are out (static, once).
     attribution_named: bool,
+    /// The window entry's feature groups the attribution view sums over (this model's joints).
+    feature_groups: Vec<crate::explain::FeatureGroup>,
 }
 
 /// How a lane's plot lines are told apart from another lane's in the same views.
@@ -641,6 +643,7 @@ impl AntLogger {
             now_step: 0,
             push_drawn: false,
             attribution_named: false,
+            feature_groups: crate::explain::feature_groups(env.actuators()),
         }
     }
 
@@ -1205,11 +1208,10 @@ impl AntLogger {
     /// (`latent/attribution_groups`, named by group, a hue each).
     pub fn log_attribution(
         &mut self,
-        env: &AntEnv,
         a: &crate::explain::ShiftAttribution,
     ) -> Result<(), TelemetryError> {
-        let groups = crate::explain::feature_groups(env.actuators());
-        let grid = a.by_group(&groups);
+        let groups = &self.feature_groups;
+        let grid = a.by_group(groups);
         let names: Vec<&str> = groups.iter().map(|g| g.name.as_str()).collect();
         // Row-major, groups × slots: wide, as the view is.
         let values: Vec<f32> = (0..groups.len())

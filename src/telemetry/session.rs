@@ -167,8 +167,7 @@ impl Lane {
     /// For a fork lane: what it was forked from.
     /// The lane's state before its next step, as a file saves it (`seed`: the episode's).
     pub fn save_state(&self, seed: u64) -> crate::lane::SavedState {
-        let checkpoint = self.actor.checkpoint_dir().map(|_| self.actor.label());
-        self.core.save_state(seed, checkpoint)
+        self.core.save_state(&self.actor, seed)
     }
 
     pub fn fork_of(&self) -> Option<&str> {
@@ -574,7 +573,7 @@ impl Session {
             lane.logger.set_time(self.global_step, episode);
             lane.logger.log_step(lane.core.env(), record)?;
             if let Some(a) = &attribution {
-                lane.logger.log_attribution(lane.core.env(), a)?;
+                lane.logger.log_attribution(a)?;
             }
             let out = &record.outcome;
             if out.done() {
