@@ -18,7 +18,7 @@ test:
 bench: setup
 	$(CARGO) run --release -- bench env
 
-# The stock Rerun 0.36.3 viewer binary (from PyPI's rerun-sdk wheel), for `rerun FILE.rrd`.
+# The stock Rerun 0.41.0 viewer binary (from PyPI's rerun-sdk wheel), for `rerun FILE.rrd`.
 viewer:
 	@./scripts/setup.sh --viewer
 

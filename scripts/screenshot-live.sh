@@ -44,9 +44,13 @@ xvfb-run -a -s "-screen 0 1920x1080x24" bash -c '
   xwd -root -silent | /usr/bin/convert xwd:- -crop 520x1080+1400+0 +repage "$2/panel.png"
   wait "$live"
 ' "$bin" "$secs" "$work" "$@" || { cat "$log" >&2; exit 1; }
+# A live session is saved in small chunks (one per entity every few steps); the 0.41 viewer's
+# --screenshot-to fires while it is still loading so many (views half-drawn, a loading
+# indicator), so compact them first, as `rerun rrd optimize` does for any recording.
+.deps/rerun/rerun rrd optimize "$work/session.rrd" -o "$work/compact.rrd" 2>/dev/null
 # A second X server right after the first can race its teardown: retry briefly.
 for _ in 1 2 3; do
-  ./scripts/screenshot.sh "$work/session.rrd" "$work/viewer.png" 1400x1080 >/dev/null 2>&1 && break
+  ./scripts/screenshot.sh "$work/compact.rrd" "$work/viewer.png" 1400x1080 >/dev/null 2>&1 && break
   sleep 3
 done
 # The viewer screenshots at 2 pixels per point; scale it to the panel's 1080 rows.

@@ -2,14 +2,14 @@
 # Idempotent setup: fetches the native pieces gaitscope uses, from PyPI only, into the
 # git-ignored folder .deps/. Safe to run any number of times.
 #   .deps/mujoco/lib/libmujoco.so.3.17.0 (+ libmujoco.so link)  from the mujoco==3.17.0 wheel
-#   .deps/rerun/rerun (only with --viewer)                        from the rerun-sdk==0.36.3 wheel
+#   .deps/rerun/rerun (only with --viewer)                        from the rerun-sdk==0.41.0 wheel
 #   Debian's ffmpeg and Mesa EGL for `gaitscope video` (apt-get, where missing; a warning if it can't)
 #   with --test: also Chromium and ChromeDriver for the browser tests, Xvfb + Vulkan (lavapipe)
 #   and the Rerun viewer for `live` under a private X screen (and then all are required)
 set -euo pipefail
 
 MUJOCO_VERSION=3.17.0
-RERUN_VERSION=0.36.3
+RERUN_VERSION=0.41.0
 root=$(cd "$(dirname "$0")/.." && pwd)
 deps="$root/.deps"
 
@@ -80,9 +80,10 @@ fi
 # The stock Rerun viewer, to open recordings; not needed to record or test.
 if [ "${1:-}" = "--viewer" ] || [ "${1:-}" = "--test" ]; then
   viewer="$deps/rerun/rerun"
-  if [ ! -x "$viewer" ]; then
+  # A viewer left by an older checkout is replaced: live streaming needs the SDK's minor version.
+  if [ ! -x "$viewer" ] || ! "$viewer" --version 2>/dev/null | grep -q " $RERUN_VERSION "; then
     echo "setup: fetching the Rerun $RERUN_VERSION viewer from PyPI (rerun-sdk==$RERUN_VERSION wheel)"
-    extract_from_wheel rerun-sdk "$RERUN_VERSION" rerun_sdk/rerun_cli/rerun "$viewer"
+    extract_from_wheel rerun-sdk "$RERUN_VERSION" rerun_cli/rerun "$viewer"
   fi
   "$viewer" analytics disable >/dev/null 2>&1 || true
   echo "setup: Rerun viewer ready: $viewer"

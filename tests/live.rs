@@ -319,6 +319,79 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
     common::check_leg_colors(&chunks, &format!("/{}", LIVE_ROOTS[0]), threshold, &[]);
 }
 
+/// `live --connect` to a viewer a person started themselves, of the current Rerun: the stock
+/// 0.41 binary (`rerun --port P --save FILE`, which listens like a viewer and writes what it
+/// receives) takes the stream, and what it wrote has every step, the legs coloured by damage.
+#[test]
+fn live_streams_to_a_stock_viewer_started_by_the_test() {
+    let viewer = Path::new(gaitscope::app::viewer::BUNDLED_VIEWER);
+    assert!(
+        viewer.exists(),
+        "the stock viewer (`make test` sets it up: scripts/setup.sh --test)"
+    );
+    gaitscope::app::viewer::check_viewer(viewer)
+        .expect("the viewer matches the SDK's minor version");
+    let dir = tempfile::tempdir().unwrap();
+    checkpoint(dir.path());
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .unwrap()
+        .port();
+    let received = dir.path().join("received.rrd");
+    let mut server = std::process::Command::new(viewer)
+        .args(["--bind", "127.0.0.1", "--port", &port.to_string(), "--save"])
+        .arg(&received)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let url = format!("rerun+http://127.0.0.1:{port}/proxy");
+    let deadline = std::time::Instant::now() + WAIT;
+    while gaitscope::app::viewer::check_reachable(&url).is_err() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the viewer never listened on {port}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let sink = Sink::Viewer { url, save: None };
+    let (rec, _) = open(&sink, "gaitscope-live-connect", &live_roots()).unwrap();
+    let sim = SimHandle::spawn(rec, setup(dir.path(), LiveCondition::Severe)).unwrap();
+    let steps = 30;
+    for _ in 0..steps {
+        step_once(&sim);
+    }
+    let report = sim.shutdown().expect("every step reached the viewer");
+    assert_eq!(report.steps, steps);
+    // SIGINT: the viewer closes its file as a person's Ctrl-C would.
+    let _ = std::process::Command::new("kill")
+        .args(["-INT", &server.id().to_string()])
+        .status();
+    let deadline = std::time::Instant::now() + WAIT;
+    while server.try_wait().unwrap().is_none() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the viewer did not exit on SIGINT"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let file = std::io::BufReader::new(std::fs::File::open(&received).unwrap());
+    let chunks = common::recording_chunks(
+        re_log_encoding::DecoderApp::decode_lazy(file)
+            .map(|m| m.expect("the viewer's file decodes"))
+            .collect::<Vec<_>>(),
+    );
+    let root = format!("/{}", LIVE_ROOTS[0]);
+    let distance: usize = chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == format!("{root}/goal/distance"))
+        .map(Chunk::num_rows)
+        .sum();
+    assert_eq!(distance as u64, steps, "every step reached the viewer");
+    common::assert_no_static_shadowing(&chunks);
+    common::check_leg_colors(&chunks, &root, GaitConfig::default().damage.threshold, &[]);
+}
+
 /// Two models live under severe damage, one joint pinned by hand: the stream's legs show each
 /// model's own damage (red when triggered, purple when pinned), nothing is shadowed by static
 /// data, and every plot line names its checkpoint and lane.

@@ -388,6 +388,20 @@ fn the_blueprint_makes_cameras_follow_and_hides_legends() {
             for s in chunk.iter_slices::<String>(component) {
                 tracked.extend(s.iter().map(|t| t.to_string()));
             }
+            // A starting eye close behind the Ant (0.41's default frames the whole scene, so
+            // the Ant came out a few pixels tall); tracking keeps the offset.
+            let eye = rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D::descriptor_position().component;
+            let eyes: Vec<_> = chunk
+                .iter_component::<rerun::components::Position3D>(eye)
+                .flat_map(|p| p.to_vec())
+                .collect();
+            assert_eq!(eyes.len(), 1, "one starting eye per view");
+            let [x, y, z] = eyes[0].0.0;
+            let distance = (x * x + y * y + (z - 0.4) * (z - 0.4)).sqrt();
+            assert!(
+                (3.0..8.0).contains(&distance),
+                "eye {distance} m from the Ant"
+            );
         }
         if path.ends_with("/PlotLegend") {
             let component = rerun::external::re_sdk_types::blueprint::archetypes::PlotLegend::descriptor_visible().component;
@@ -664,5 +678,64 @@ fn the_attribution_view_adds_up_to_how_far_z_moved() {
     assert!(
         names[0].starts_with("hip_4") && names[8].starts_with("torso"),
         "{names:?}"
+    );
+}
+
+/// `path`'s chunks, read with Rerun's own decoder.
+fn decode_file(path: &std::path::Path) -> Vec<Chunk> {
+    let file = std::io::BufReader::new(std::fs::File::open(path).unwrap());
+    chunks(
+        re_log_encoding::DecoderApp::decode_lazy(file)
+            .map(|m| m.unwrap())
+            .collect::<Vec<_>>(),
+    )
+}
+
+/// A recording gaitscope made with Rerun 0.36 (committed before the move to 0.41) still reads:
+/// our 0.41 decoder finds its legs turning red exactly where its own fatigue and torque-scale
+/// series say, and the stock 0.41 CLI verifies it and migrates it (what its viewer does on
+/// load) to the same leg colours.
+#[test]
+fn a_recording_made_with_rerun_0_36_still_reads() {
+    let fixture = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/rerun-0.36-encoder-lstm-severe.rrd");
+    let old = decode_file(&fixture);
+    let threshold = config().damage.threshold;
+    let red = common::check_leg_colors(&old, "/ant", threshold, &[]);
+    assert!(red > 0, "the severe episode shows triggered (red) joints");
+    let viewer = std::path::Path::new(gaitscope::app::viewer::BUNDLED_VIEWER);
+    assert!(
+        viewer.exists(),
+        "the stock viewer (`make test` sets it up: scripts/setup.sh --test)"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let copy = dir.path().join("old.rrd");
+    std::fs::copy(&fixture, &copy).unwrap();
+    let run = |args: &[&std::ffi::OsStr]| {
+        let out = std::process::Command::new(viewer)
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "rerun {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    run(&["rrd".as_ref(), "verify".as_ref(), copy.as_os_str()]);
+    run(&["rrd".as_ref(), "migrate".as_ref(), copy.as_os_str()]);
+    let migrated = decode_file(&copy);
+    assert_ne!(
+        std::fs::read(&copy).unwrap(),
+        std::fs::read(&fixture).unwrap(),
+        "migrate rewrote the file"
+    );
+    assert_eq!(
+        common::check_leg_colors(&migrated, "/ant", threshold, &[]),
+        red
+    );
+    assert_eq!(
+        common::leg_colors(&migrated, "/ant"),
+        common::leg_colors(&old, "/ant")
     );
 }

@@ -18,8 +18,10 @@ const SPEC: FrameSpec = FrameSpec {
 
 /// Pixels of the damaged-joint red (the viewer's palette: 220, 40, 40, shaded by the light).
 fn red_pixels(rgb: &[u8]) -> usize {
-    rgb.chunks_exact(3)
-        .filter(|p| p[0] > 120 && p[1] < 70 && p[2] < 70)
+    rgb.as_chunks::<3>()
+        .0
+        .iter()
+        .filter(|[r, g, b]| *r > 120 && *g < 70 && *b < 70)
         .count()
 }
 

@@ -158,8 +158,8 @@ impl Panel {
     fn policy_section(&mut self, ui: &mut egui::Ui) {
         let main = self.view.lanes.first().and_then(|l| l.checkpoint.clone());
         ui.horizontal(|ui| {
-            ui.label("Model");
-            if let Some(dir) = self.pick_checkpoint(ui, "model", main.as_ref()) {
+            let label = ui.label("Model").id;
+            if let Some(dir) = self.pick_checkpoint(ui, "model", label, main.as_ref()) {
                 self.send(Command::Load {
                     slot: Slot::Main,
                     dir,
@@ -198,11 +198,12 @@ impl Panel {
         });
         ui.horizontal(|ui| {
             let mut compare = self.view.compare;
-            if ui.checkbox(&mut compare, "Side by side with").changed() {
+            let check = ui.checkbox(&mut compare, "Side by side with");
+            if check.changed() {
                 self.send(Command::SetCompare(compare));
             }
             let current = self.view.compare_checkpoint.clone();
-            if let Some(dir) = self.pick_checkpoint(ui, "compare", current.as_ref()) {
+            if let Some(dir) = self.pick_checkpoint(ui, "compare", check.id, current.as_ref()) {
                 self.send(Command::Load {
                     slot: Slot::Compare,
                     dir,
@@ -211,11 +212,13 @@ impl Panel {
         });
     }
 
-    /// A combo box of the known checkpoints; returns a newly picked one.
+    /// A combo box of the known checkpoints (named by the widget `label`, for screen readers);
+    /// returns a newly picked one.
     fn pick_checkpoint(
         &self,
         ui: &mut egui::Ui,
         id: &str,
+        label: egui::Id,
         current: Option<&PathBuf>,
     ) -> Option<PathBuf> {
         let name = |p: &PathBuf| crate::eval::model_label(p);
@@ -230,14 +233,16 @@ impl Panel {
                         picked = Some(dir.clone());
                     }
                 }
-            });
+            })
+            .response
+            .labelled_by(label);
         picked
     }
 
     fn episode_section(&mut self, ui: &mut egui::Ui) {
         let v = self.view.clone();
         ui.horizontal(|ui| {
-            ui.label("Condition");
+            let label = ui.label("Condition").id;
             let mut condition = v.condition;
             egui::ComboBox::from_id_salt("condition")
                 .selected_text(condition.name())
@@ -245,19 +250,26 @@ impl Panel {
                     for c in LiveCondition::ALL {
                         ui.selectable_value(&mut condition, c, c.name());
                     }
-                });
+                })
+                .response
+                .labelled_by(label);
             if condition != v.condition {
                 self.send(Command::SetCondition(condition));
             }
-            ui.label("Seed");
+            let label = ui.label("Seed").id;
             let mut seed = v.seed;
-            if ui.add(egui::DragValue::new(&mut seed)).changed() {
+            if ui
+                .add(egui::DragValue::new(&mut seed))
+                .labelled_by(label)
+                .changed()
+            {
                 self.send(Command::SetSeed(seed));
             }
-            ui.label("Step limit");
+            let label = ui.label("Step limit").id;
             let mut limit = v.step_limit;
             if ui
                 .add(egui::DragValue::new(&mut limit).range(1..=100_000))
+                .labelled_by(label)
                 .changed()
             {
                 self.send(Command::SetStepLimit(limit));
@@ -281,13 +293,13 @@ impl Panel {
             {
                 self.send(Command::StepOnce);
             }
-            ui.label("Speed");
+            let label = ui.label("Speed").id;
             let mut speed = v.speed;
             let slider = egui::Slider::new(&mut speed, MIN_SPEED..=MAX_SPEED)
                 .logarithmic(true)
                 .suffix("×")
                 .max_decimals(2);
-            if ui.add(slider).changed() {
+            if ui.add(slider).labelled_by(label).changed() {
                 self.send(Command::SetSpeed(speed));
             }
         });
@@ -316,8 +328,9 @@ impl Panel {
             ui.label(v.scenario.as_deref().unwrap_or("none"));
         });
         ui.horizontal(|ui| {
-            ui.label("Save overrides to");
-            ui.add(egui::TextEdit::singleline(&mut self.save_text).desired_width(150.0));
+            let label = ui.label("Save overrides to").id;
+            ui.add(egui::TextEdit::singleline(&mut self.save_text).desired_width(150.0))
+                .labelled_by(label);
             if ui
                 .button("Save")
                 .on_hover_text("this episode's hand-made overrides as a scenario file (re-run with rollout --scenario)")
@@ -327,8 +340,9 @@ impl Panel {
             }
         });
         ui.horizontal(|ui| {
-            ui.label("Save state to");
-            ui.add(egui::TextEdit::singleline(&mut self.state_text).desired_width(150.0));
+            let label = ui.label("Save state to").id;
+            ui.add(egui::TextEdit::singleline(&mut self.state_text).desired_width(150.0))
+                .labelled_by(label);
             if ui
                 .button("Save state")
                 .on_hover_text(
@@ -369,8 +383,10 @@ impl Panel {
             .show(ui, |ui| {
                 ui.spacing_mut().slider_width = 80.0;
                 for i in 0..N_ACTUATORS {
-                    ui.label(&lane.joint_names[i])
-                        .on_hover_text(&lane.joint_legs[i]);
+                    let name = ui
+                        .label(&lane.joint_names[i])
+                        .on_hover_text(&lane.joint_legs[i])
+                        .id;
                     fatigue_bar(ui, lane.fatigue[i], lane.threshold, lane.states[i]);
                     let (text, color) = state_text(lane.states[i]);
                     ui.colored_label(color, text);
@@ -378,7 +394,7 @@ impl Panel {
                     let slider = egui::Slider::new(&mut scale, 0.0..=1.0)
                         .max_decimals(2)
                         .show_value(true);
-                    if ui.add(slider).changed() {
+                    if ui.add(slider).labelled_by(name).changed() {
                         self.send(Command::Override {
                             actuator: i,
                             change: JointOverride::SetScale(scale),
@@ -412,7 +428,9 @@ impl Panel {
                     for b in bodies {
                         ui.selectable_value(&mut self.push_body, b.clone(), b);
                     }
-                });
+                })
+                .response
+                .accessible_name("push body");
             for (axis, f) in ["x", "y", "z"].iter().zip(&mut self.push_force) {
                 ui.add(
                     egui::DragValue::new(f)
@@ -420,13 +438,15 @@ impl Panel {
                         .suffix(" N")
                         .speed(1.0)
                         .range(-crate::damage::MAX_PUSH_NEWTONS..=crate::damage::MAX_PUSH_NEWTONS),
-                );
+                )
+                .accessible_name(format!("push force {axis} (N)"));
             }
             ui.add(
                 egui::DragValue::new(&mut self.push_steps)
                     .range(1..=crate::damage::MAX_PUSH_STEPS)
                     .suffix(" steps"),
-            );
+            )
+            .accessible_name("push steps");
             if ui
                 .button("Push")
                 .on_hover_text("an external force on the body's centre of mass, world frame")
@@ -523,12 +543,13 @@ impl Panel {
 
         ui.label(RichText::new("Time travel and forks").strong());
         ui.horizontal(|ui| {
-            ui.label("rewind to step");
+            let label = ui.label("rewind to step").id;
             self.rewind_to = self.rewind_to.min(v.rewindable);
             ui.add_enabled(
                 v.rewindable > 0,
                 egui::Slider::new(&mut self.rewind_to, 0..=v.rewindable.max(1)),
-            );
+            )
+            .labelled_by(label);
             if ui
                 .add_enabled(v.rewindable > 0, egui::Button::new("Rewind"))
                 .on_hover_text("go back to that step and continue from there (a new branch)")

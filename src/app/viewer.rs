@@ -49,12 +49,12 @@ fn how_to_get() -> String {
     HOW_TO_GET.replace("VERSION", &sdk_version())
 }
 
-/// The Rerun SDK version we log with, e.g. `0.36.3`.
+/// The Rerun SDK version we log with, e.g. `0.41.0`.
 pub fn sdk_version() -> String {
-    rerun::build_info().version.to_string()
+    rerun::external::re_build_info::CrateVersion::LOCAL.to_string()
 }
 
-/// `rerun --version` prints `rerun-cli 0.36.3 (features…) …`: the version is the second word.
+/// `rerun --version` prints `rerun-cli 0.41.0 (features…) …`: the version is the second word.
 pub fn parse_viewer_version(output: &str) -> Option<(u64, u64, u64)> {
     let word = output.split_whitespace().nth(1)?;
     let mut parts = word.split(['.', '-', '+']).map(|p| p.parse::<u64>().ok());
@@ -67,7 +67,7 @@ pub fn versions_compatible(viewer: (u64, u64, u64), sdk: (u64, u64, u64)) -> boo
 }
 
 fn sdk_triple() -> (u64, u64, u64) {
-    let v = rerun::build_info().version;
+    let v = rerun::external::re_build_info::CrateVersion::LOCAL;
     (u64::from(v.major), u64::from(v.minor), u64::from(v.patch))
 }
 

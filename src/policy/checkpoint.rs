@@ -241,8 +241,10 @@ pub fn load_expected_tensors(
         }
         let values: Vec<f32> = view
             .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .as_chunks::<4>()
+            .0
+            .iter()
+            .map(|b| f32::from_le_bytes(*b))
             .collect();
         if values.iter().any(|v| !v.is_finite()) {
             return Err(CheckpointError::NonFinite {

@@ -12,7 +12,7 @@
 //! | `{root}/world/floor`, `{root}/world/goal`, `{root}/world/goal/radius` | Boxes3D, Ellipsoids3D, LineStrips3D | static |
 //! | `{root}/world/trail` | LineStrips3D (torso path, every 5th step) | every 5 steps |
 //! | `{root}/world/ending` | Points3D labelled with how the lane's episode ended, above the Ant | at the end; cleared at the next episode |
-//! | `{root}/world/focus` | LineStrips3D, a faint 2.5 m ring on the floor under the torso: what the 3-D view's camera tracks (its size sets the framing) | per step |
+//! | `{root}/world/focus` | LineStrips3D, a faint 2.5 m ring on the floor under the torso: what the 3-D view's camera tracks (from a starting eye 5 m behind and above) | per step |
 //! | `{root}/joints/fatigue`, `{root}/joints/scale` | Scalars × 8 (series named by joint, actuator order) | per step |
 //! | `{root}/joints/threshold` | Scalars | episode start and end |
 //! | `{root}/events` | TextLog (triggers WARN, overrides INFO, breakpoint hits BREAK, rewinds and forks BRANCH, pushes PUSH) | on events |
@@ -45,6 +45,11 @@ pub use session::{
 };
 
 pub const APP_ID: &str = "gaitscope";
+/// Where each 3-D view's eye starts, behind and above the Ant's start, looking at it (m):
+/// Rerun 0.41 frames the whole scene by default (the Ant a few pixels tall); tracking the
+/// focus ring keeps this offset as the Ant walks.
+const EYE_START: [f32; 3] = [-2.5, -4.0, 3.0];
+const EYE_TARGET: [f32; 3] = [0.0, 0.0, 0.4];
 /// The ring the 3-D camera tracks: its radius (m) and segments.
 const FOCUS_RADIUS: f32 = 2.5;
 const FOCUS_SEGMENTS: usize = 32;
@@ -300,7 +305,9 @@ pub fn layout_for(
                 format!("{path}/EyeControls3D"),
                 Box::new(
                     rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D::new()
-                        .with_tracking_entity(format!("/{r}/world/focus")),
+                        .with_tracking_entity(format!("/{r}/world/focus"))
+                        .with_position(EYE_START)
+                        .with_look_target(EYE_TARGET),
                 ),
             ));
         }

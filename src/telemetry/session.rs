@@ -886,8 +886,6 @@ pub fn record(
     match &file {
         // Bounded: a file writer that died on a write error leaves a queued flush unanswered
         // (Rerun 0.36's FileSink), so an unbounded flush would hang.
-        // Bounded: a file writer that died on a write error leaves a queued flush unanswered
-        // (Rerun 0.36's FileSink), so an unbounded flush would hang.
         Some(f) => match session.flush_within(FILE_FLUSH_TIMEOUT) {
             Ok(()) => f.rename_into_place()?,
             Err(e) => {

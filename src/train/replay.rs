@@ -245,8 +245,8 @@ impl ReplayBuffer {
         ] {
             let mut bytes = vec![0u8; vec.len() * 4];
             r.read_exact(&mut bytes).map_err(truncated)?;
-            for (v, b) in vec.iter_mut().zip(bytes.chunks_exact(4)) {
-                *v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            for (v, b) in vec.iter_mut().zip(bytes.as_chunks::<4>().0) {
+                *v = f32::from_le_bytes(*b);
             }
         }
         for flags in [&mut self.terminated, &mut self.truncated] {
@@ -258,8 +258,8 @@ impl ReplayBuffer {
         }
         let mut bytes = vec![0u8; self.t_in_episode.len() * 4];
         r.read_exact(&mut bytes).map_err(truncated)?;
-        for (v, b) in self.t_in_episode.iter_mut().zip(bytes.chunks_exact(4)) {
-            *v = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        for (v, b) in self.t_in_episode.iter_mut().zip(bytes.as_chunks::<4>().0) {
+            *v = u32::from_le_bytes(*b);
         }
         let non_finite = |v: &[f32]| v.iter().any(|x| !x.is_finite());
         if non_finite(&self.obs)
