@@ -81,7 +81,9 @@ fi
 if [ "${1:-}" = "--viewer" ] || [ "${1:-}" = "--test" ]; then
   viewer="$deps/rerun/rerun"
   # A viewer left by an older checkout is replaced: live streaming needs the SDK's minor version.
-  if [ ! -x "$viewer" ] || ! "$viewer" --version 2>/dev/null | grep -q " $RERUN_VERSION "; then
+  # (Read whole, not piped to `grep -q`: under pipefail its early exit fails the pipeline.)
+  have=$([ -x "$viewer" ] && "$viewer" --version 2>/dev/null || true)
+  if [[ "$have" != *" $RERUN_VERSION "* ]]; then
     echo "setup: fetching the Rerun $RERUN_VERSION viewer from PyPI (rerun-sdk==$RERUN_VERSION wheel)"
     extract_from_wheel rerun-sdk "$RERUN_VERSION" rerun_cli/rerun "$viewer"
   fi
