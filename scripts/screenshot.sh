@@ -15,7 +15,9 @@ rm -f "$out"
 # The viewer writes the screenshot, then exits through a panic on shutdown (a known quirk of
 # --screenshot-to): judge by the file, not the exit code.
 # The pointer starts mid-screen, where it would raise a hover tooltip: park it in the corner.
-XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}" xvfb-run -a -s "-screen 0 ${size}x24" \
+# RUST_LOG=error: Rerun 0.41 shows its startup warnings (software rasterizer, a container) as
+# toasts over the views; a screenshot taken while they show has them covering the plots.
+RUST_LOG=error XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}" xvfb-run -a -s "-screen 0 ${size}x24" \
   bash -c '(for _ in $(seq 20); do xdotool mousemove 0 0 2>/dev/null; sleep 0.25; done) & exec "$@"' _ \
   .deps/rerun/rerun --window-size "$size" --screenshot-to "$out" "$rrd" >/dev/null 2>&1 || true
 [ -s "$out" ] || { echo "no screenshot was written" >&2; exit 1; }
