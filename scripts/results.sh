@@ -2,7 +2,8 @@
 # Regenerates docs/results/ (tables and figures) from the committed checkpoints: the three
 # models × training seeds 0–5 (seed 0 in checkpoints/<model>, seeds 1–5 in
 # checkpoints/seeds/<model>-s<seed>), each at the full 500k steps (issue 31: six seeds, so the
-# seed-level test can reach p = 0.031). Any run that resumed with a refilled buffer is named in
+# seed-level test can reach p = 0.031), and the LSTM with the dynamics auxiliary loss, seeds 0–2
+# (checkpoints/seeds/encoder-lstm-aux-s<seed>, issue 33). Any run that resumed with a refilled buffer is named in
 # eval.md by `gaitscope eval`.
 #   - eval: every run on the same 200 eval seeds per condition; per-seed and across-seed tables,
 #     paired tests, failure modes, figures (docs/results/eval.md and *.png);
@@ -11,7 +12,7 @@
 #   - training curves of every run;
 #   - seed 2's encoders before their empty-buffer resume (docs/results/pre-resume/).
 # Usage:
-#   scripts/results.sh                # all eighteen runs must be complete
+#   scripts/results.sh                # all twenty-one runs must be complete
 #   scripts/results.sh --partial DIR  # whatever exists now, into DIR (a preview; not docs/)
 # EVAL_EPISODES (200) and PROBE_EPISODES (50) override the per-cell episode counts.
 set -euo pipefail
@@ -32,9 +33,18 @@ steps_done() {
   python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["steps_done"])' "$1/checkpoint.json"
 }
 
+# run_dirs MODEL: its training runs. The three models of issue 31 have six seeds each; the
+# LSTM with the dynamics auxiliary loss (issue 33, `train --aux dynamics`) has seeds 0–2, all in
+# checkpoints/seeds/ (eval groups runs by folder name without -sN, so it is a model of its own).
+run_dirs() {
+  case $1 in
+    encoder-lstm-aux) echo checkpoints/seeds/"$1"-s{0,1,2} ;;
+    *) echo "checkpoints/$1" checkpoints/seeds/"$1"-s{1,2,3,4,5} ;;
+  esac
+}
 runs=() encoders=() missing=()
-for model in baseline encoder-lstm encoder-mlp; do
-  for dir in "checkpoints/$model" checkpoints/seeds/"$model"-s{1,2,3,4,5}; do
+for model in baseline encoder-lstm encoder-mlp encoder-lstm-aux; do
+  for dir in $(run_dirs "$model"); do
     if [ -f "$dir/checkpoint.json" ] && { $partial || [ "$(steps_done "$dir")" -ge "$steps" ]; }; then
       runs+=("$dir")
       [ "$model" != baseline ] && encoders+=("$dir")
