@@ -338,13 +338,23 @@ fn live_streams_to_a_stock_viewer_started_by_the_test() {
         .unwrap()
         .port();
     let received = dir.path().join("received.rrd");
-    let mut server = std::process::Command::new(viewer)
-        .args(["--bind", "127.0.0.1", "--port", &port.to_string(), "--save"])
-        .arg(&received)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    /// The viewer process, killed if the test fails before it is stopped.
+    struct Server(std::process::Child);
+    impl Drop for Server {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let mut server = Server(
+        std::process::Command::new(viewer)
+            .args(["--bind", "127.0.0.1", "--port", &port.to_string(), "--save"])
+            .arg(&received)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
     let url = format!("rerun+http://127.0.0.1:{port}/proxy");
     let deadline = std::time::Instant::now() + WAIT;
     while gaitscope::app::viewer::check_reachable(&url).is_err() {
@@ -365,10 +375,10 @@ fn live_streams_to_a_stock_viewer_started_by_the_test() {
     assert_eq!(report.steps, steps);
     // SIGINT: the viewer closes its file as a person's Ctrl-C would.
     let _ = std::process::Command::new("kill")
-        .args(["-INT", &server.id().to_string()])
+        .args(["-INT", &server.0.id().to_string()])
         .status();
     let deadline = std::time::Instant::now() + WAIT;
-    while server.try_wait().unwrap().is_none() {
+    while server.0.try_wait().unwrap().is_none() {
         assert!(
             std::time::Instant::now() < deadline,
             "the viewer did not exit on SIGINT"

@@ -884,8 +884,8 @@ pub fn record(
         episodes_done += 1;
     }
     match &file {
-        // Bounded: a file writer that died on a write error leaves a queued flush unanswered
-        // (Rerun 0.36's FileSink), so an unbounded flush would hang.
+        // Bounded: a file writer that died on a write error has left a queued flush unanswered
+        // (seen with Rerun 0.36's FileSink), so an unbounded flush could hang.
         Some(f) => match session.flush_within(FILE_FLUSH_TIMEOUT) {
             Ok(()) => f.rename_into_place()?,
             Err(e) => {
