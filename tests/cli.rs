@@ -691,15 +691,7 @@ fn a_recording_that_cannot_be_written_leaves_no_truncated_file() {
         .collect();
     assert_eq!(names, ["ant.rrd"]);
     // Whole: every message decodes, and the episode's 40 steps of distance are there.
-    let file = std::io::BufReader::new(std::fs::File::open(&out).unwrap());
-    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
-        .collect::<Result<_, _>>()
-        .expect("every message decodes");
-    let chunks = common::recording_chunks(msgs);
-    let distance: usize = chunks
-        .iter()
-        .filter(|c| c.entity_path().to_string() == "/ant/goal/distance")
-        .map(|c| c.num_rows())
-        .sum();
+    let chunks = common::read_rrd(&out);
+    let distance = common::rows(&chunks, "/ant/goal/distance");
     assert!(distance > 0 && distance <= 40, "{distance} distance rows");
 }

@@ -10,7 +10,6 @@ use gaitscope::damage::{JointOverride, JointState};
 use gaitscope::policy::checkpoint::TrainingRecord;
 use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, SacConfig, SacModel};
 use gaitscope::telemetry::{Sink, open};
-use re_chunk::Chunk;
 use std::path::Path;
 use std::time::Duration;
 
@@ -75,6 +74,14 @@ fn started(
     let (rec, storage) = memory_stream();
     let sim = SimHandle::spawn(rec, setup(dir.path(), condition)).unwrap();
     (dir, sim, storage)
+}
+
+/// A loopback port that was free a moment ago (bound, then released).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .unwrap()
+        .port()
 }
 
 /// Sends one single-step command and waits until the simulation has taken it.
@@ -274,11 +281,8 @@ fn bad_settings_are_refused_before_anything_starts() {
 fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
     let dir = tempfile::tempdir().unwrap();
     checkpoint(dir.path());
-    // A free port: bound, then released, so nothing listens there.
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .unwrap()
-        .port();
+    // Nothing listens on a free port.
+    let port = free_port();
     let save = dir.path().join("session.rrd");
     let sink = Sink::Viewer {
         url: format!("rerun+http://127.0.0.1:{port}/proxy"),
@@ -297,23 +301,16 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
         }
         other => panic!("expected an unflushed-session error, got {other:?}"),
     }
-    let file = std::io::BufReader::new(std::fs::File::open(&save).unwrap());
-    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
-        .map_while(Result::ok)
-        .collect();
-    let distance: usize = common::recording_chunks(msgs)
-        .iter()
-        .filter(|c| c.entity_path().to_string() == format!("/{}/goal/distance", LIVE_ROOTS[0]))
-        .map(Chunk::num_rows)
-        .sum();
-    assert_eq!(distance, 3, "every step reached the file");
-    // The saved file's legs: per-step colours only, each the damage palette of its step.
+    // Read once, up to the first message that does not decode.
     let chunks = common::recording_chunks({
         let file = std::io::BufReader::new(std::fs::File::open(&save).unwrap());
         re_log_encoding::DecoderApp::decode_lazy(file)
             .map_while(Result::ok)
             .collect::<Vec<_>>()
     });
+    let distance = common::rows(&chunks, &format!("/{}/goal/distance", LIVE_ROOTS[0]));
+    assert_eq!(distance, 3, "every step reached the file");
+    // The saved file's legs: per-step colours only, each the damage palette of its step.
     common::assert_no_static_shadowing(&chunks);
     let threshold = GaitConfig::default().damage.threshold;
     common::check_leg_colors(&chunks, &format!("/{}", LIVE_ROOTS[0]), threshold, &[]);
@@ -324,19 +321,12 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
 /// receives) takes the stream, and what it wrote has every step, the legs coloured by damage.
 #[test]
 fn live_streams_to_a_stock_viewer_started_by_the_test() {
-    let viewer = Path::new(gaitscope::app::viewer::BUNDLED_VIEWER);
-    assert!(
-        viewer.exists(),
-        "the stock viewer (`make test` sets it up: scripts/setup.sh --test)"
-    );
+    let viewer = common::stock_viewer();
     gaitscope::app::viewer::check_viewer(viewer)
         .expect("the viewer matches the SDK's minor version");
     let dir = tempfile::tempdir().unwrap();
     checkpoint(dir.path());
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .unwrap()
-        .port();
+    let port = free_port();
     let received = dir.path().join("received.rrd");
     /// The viewer process, killed if the test fails before it is stopped.
     struct Server(std::process::Child);
@@ -385,18 +375,9 @@ fn live_streams_to_a_stock_viewer_started_by_the_test() {
         );
         std::thread::sleep(Duration::from_millis(100));
     }
-    let file = std::io::BufReader::new(std::fs::File::open(&received).unwrap());
-    let chunks = common::recording_chunks(
-        re_log_encoding::DecoderApp::decode_lazy(file)
-            .map(|m| m.expect("the viewer's file decodes"))
-            .collect::<Vec<_>>(),
-    );
+    let chunks = common::read_rrd(&received);
     let root = format!("/{}", LIVE_ROOTS[0]);
-    let distance: usize = chunks
-        .iter()
-        .filter(|c| c.entity_path().to_string() == format!("{root}/goal/distance"))
-        .map(Chunk::num_rows)
-        .sum();
+    let distance = common::rows(&chunks, &format!("{root}/goal/distance"));
     assert_eq!(distance as u64, steps, "every step reached the viewer");
     common::assert_no_static_shadowing(&chunks);
     common::check_leg_colors(&chunks, &root, GaitConfig::default().damage.threshold, &[]);

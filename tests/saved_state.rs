@@ -277,11 +277,7 @@ fn a_recording_starts_from_a_saved_state() {
         "{}",
         String::from_utf8_lossy(&status.stderr)
     );
-    let reader = std::io::BufReader::new(std::fs::File::open(&out).unwrap());
-    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(reader)
-        .map(|m| m.unwrap())
-        .collect();
-    let chunks = common::recording_chunks(msgs);
+    let chunks = common::read_rrd(&out);
     let fatigue = common::joint_series(&chunks, "/ant/joints/fatigue");
     assert_eq!(fatigue.len(), rows.len() - K, "the steps from K to the end");
     // Global step 1 is env step K.

@@ -143,11 +143,7 @@ fn file_recording_decodes_to_what_the_env_reported() {
     let path = dir.path().join("episode.rrd");
     let summary = record(options(Sink::File(path.clone())), &AtomicBool::new(false)).unwrap();
     assert_eq!(summary.steps as usize, truth.fatigue.len());
-    let file = std::io::BufReader::new(std::fs::File::open(&path).unwrap());
-    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
-        .map(|m| m.unwrap())
-        .collect();
-    check(&chunks(msgs), &truth);
+    check(&common::read_rrd(&path), &truth);
 }
 
 #[test]
@@ -190,16 +186,8 @@ fn a_stop_request_still_leaves_a_readable_file() {
 #[ignore = "needs GAITSCOPE_RRD, set by .ci/run"]
 fn exported_file_decodes() {
     let path = std::env::var("GAITSCOPE_RRD").expect("GAITSCOPE_RRD names the exported .rrd");
-    let file = std::io::BufReader::new(std::fs::File::open(&path).unwrap());
-    let msgs: Vec<_> = re_log_encoding::DecoderApp::decode_lazy(file)
-        .map(|m| m.unwrap())
-        .collect();
-    let chunks = chunks(msgs);
-    let steps: usize = chunks
-        .iter()
-        .filter(|c| c.entity_path().to_string() == "/ant/goal/distance")
-        .map(Chunk::num_rows)
-        .sum();
+    let chunks = common::read_rrd(std::path::Path::new(&path));
+    let steps = common::rows(&chunks, "/ant/goal/distance");
     assert!(steps >= 1, "the exported recording has steps");
     eprintln!("{path}: {} chunks, {steps} steps", chunks.len());
 }
@@ -681,16 +669,6 @@ fn the_attribution_view_adds_up_to_how_far_z_moved() {
     );
 }
 
-/// `path`'s chunks, read with Rerun's own decoder.
-fn decode_file(path: &std::path::Path) -> Vec<Chunk> {
-    let file = std::io::BufReader::new(std::fs::File::open(path).unwrap());
-    chunks(
-        re_log_encoding::DecoderApp::decode_lazy(file)
-            .map(|m| m.unwrap())
-            .collect::<Vec<_>>(),
-    )
-}
-
 /// A recording gaitscope made with Rerun 0.36 (committed before the move to 0.41) still reads:
 /// our 0.41 decoder finds its legs turning red exactly where its own fatigue and torque-scale
 /// series say, and the stock 0.41 CLI verifies it and migrates it (what its viewer does on
@@ -699,15 +677,11 @@ fn decode_file(path: &std::path::Path) -> Vec<Chunk> {
 fn a_recording_made_with_rerun_0_36_still_reads() {
     let fixture = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/fixtures/rerun-0.36-encoder-lstm-severe.rrd");
-    let old = decode_file(&fixture);
+    let old = common::read_rrd(&fixture);
     let threshold = config().damage.threshold;
     let red = common::check_leg_colors(&old, "/ant", threshold, &[]);
     assert!(red > 0, "the severe episode shows triggered (red) joints");
-    let viewer = std::path::Path::new(gaitscope::app::viewer::BUNDLED_VIEWER);
-    assert!(
-        viewer.exists(),
-        "the stock viewer (`make test` sets it up: scripts/setup.sh --test)"
-    );
+    let viewer = common::stock_viewer();
     let dir = tempfile::tempdir().unwrap();
     let copy = dir.path().join("old.rrd");
     std::fs::copy(&fixture, &copy).unwrap();
@@ -724,7 +698,7 @@ fn a_recording_made_with_rerun_0_36_still_reads() {
     };
     run(&["rrd".as_ref(), "verify".as_ref(), copy.as_os_str()]);
     run(&["rrd".as_ref(), "migrate".as_ref(), copy.as_os_str()]);
-    let migrated = decode_file(&copy);
+    let migrated = common::read_rrd(&copy);
     assert_ne!(
         std::fs::read(&copy).unwrap(),
         std::fs::read(&fixture).unwrap(),

@@ -18,6 +18,36 @@ pub fn recording_chunks(msgs: impl IntoIterator<Item = rerun::log::LogMsg>) -> V
         .collect()
 }
 
+/// The recording chunks of an `.rrd` file, read with Rerun's own decoder; every message must
+/// decode.
+pub fn read_rrd(path: &std::path::Path) -> Vec<Chunk> {
+    let file = std::io::BufReader::new(std::fs::File::open(path).unwrap());
+    recording_chunks(
+        re_log_encoding::DecoderApp::decode_lazy(file)
+            .collect::<Result<Vec<_>, _>>()
+            .expect("every message decodes"),
+    )
+}
+
+/// Rows logged to one entity, over all its chunks (one per step for per-step entities).
+pub fn rows(chunks: &[Chunk], entity: &str) -> usize {
+    chunks
+        .iter()
+        .filter(|c| c.entity_path().to_string() == entity)
+        .map(Chunk::num_rows)
+        .sum()
+}
+
+/// The stock Rerun CLI/viewer that `make test` unpacks (scripts/setup.sh --test).
+pub fn stock_viewer() -> &'static std::path::Path {
+    let viewer = std::path::Path::new(gaitscope::app::viewer::BUNDLED_VIEWER);
+    assert!(
+        viewer.exists(),
+        "the stock viewer (`make test` sets it up: scripts/setup.sh --test)"
+    );
+    viewer
+}
+
 /// (step, value) of one entity across chunks: `read` gives one value per row of a chunk.
 pub fn per_step<T>(
     chunks: &[Chunk],
