@@ -88,6 +88,12 @@ import json, statistics, sys
 out, steps, last = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 seeds = sys.argv[4:]
 
+def steps_done(run):
+    try:
+        return json.load(open(f"{out}/{run}/checkpoint.json"))["steps_done"]
+    except FileNotFoundError:
+        return 0
+
 def tail(run):
     eps = []
     with open(f"{out}/{run}/metrics.jsonl") as f:
@@ -111,19 +117,32 @@ def refills(run):
 
 print(f"| seed | run | episodes in the last {last:,} steps | success | mean return | resume record |")
 print("|---|---|---:|---:|---:|---|")
-means = {"straight": [], "refilled": []}
+# Only seeds whose two runs both reached `steps` enter the means and the paired differences.
+pairs = []
 for seed in seeds:
+    row = {}
     for kind in ["straight", "refilled"]:
         run = f"none-s{seed}-{kind}"
+        done = steps_done(run)
+        if done < steps:
+            print(f"| {seed} | {kind} | | | | not finished: {done:,} / {steps:,} steps |")
+            continue
         eps = tail(run)
         succ = 100 * sum(s for s, _ in eps) / max(len(eps), 1)
         ret = statistics.mean(r for _, r in eps) if eps else float("nan")
-        means[kind].append((succ, ret))
+        row[kind] = (succ, ret)
         print(f"| {seed} | {kind} | {len(eps)} | {succ:.1f} % | {ret:.1f} | {refills(run)} |")
-for kind, rows in means.items():
-    if rows:
-        print(f"| mean | {kind} | | {statistics.mean(s for s, _ in rows):.1f} % | "
-              f"{statistics.mean(r for _, r in rows):.1f} | |")
+    if len(row) == 2:
+        pairs.append(row)
+for kind in ["straight", "refilled"]:
+    if pairs:
+        print(f"| mean of {len(pairs)} | {kind} | | {statistics.mean(p[kind][0] for p in pairs):.1f} % | "
+              f"{statistics.mean(p[kind][1] for p in pairs):.1f} | |")
+if pairs:
+    diffs = [p["refilled"][1] - p["straight"][1] for p in pairs]
+    print()
+    print("refilled − straight, mean return per seed: "
+          + ", ".join(f"{d:+.1f}" for d in diffs) + f" (mean {statistics.mean(diffs):+.1f})")
 EOF
     ;;
   *)
