@@ -377,13 +377,24 @@ fn padded((lo, hi): (f64, f64)) -> (f64, f64) {
     (lo - pad, hi + pad)
 }
 
-/// One panel of a multi-panel line figure: a title, a y label and named lines.
+/// One line of a [`LinePanel`]. Lines share a colour (and one legend entry) by `name`.
+pub struct Line {
+    pub name: String,
+    /// A point whose y is not finite (e.g. NaN) breaks the line: nothing is drawn across it.
+    pub points: Vec<(f64, f64)>,
+    /// Thin and pale (one seed of a group), under the group's bold line.
+    pub faint: bool,
+}
+
+/// One panel of a multi-panel line figure: a title, a y label and lines.
 pub struct LinePanel {
     pub title: String,
     pub y_label: String,
-    pub lines: Vec<(String, Vec<(f64, f64)>)>,
+    pub lines: Vec<Line>,
     /// A fixed y range (e.g. 0…1 for a rate); otherwise fitted to the data.
     pub y_range: Option<(f64, f64)>,
+    /// Where this panel's legend goes; `None`: no legend (another panel has it).
+    pub legend: Option<SeriesLabelPosition>,
 }
 
 /// Panels on a grid of `columns`, sharing the x label; one colour per line name across panels.
@@ -396,14 +407,14 @@ pub fn line_panels(
     let columns = columns.max(1);
     let rows = panels.len().div_ceil(columns).max(1);
     let mut names: Vec<&str> = Vec::new();
-    for (name, _) in panels.iter().flat_map(|p| &p.lines) {
-        if !names.contains(&name.as_str()) {
-            names.push(name);
+    for line in panels.iter().flat_map(|p| &p.lines) {
+        if !names.contains(&line.name.as_str()) {
+            names.push(&line.name);
         }
     }
     render(path, (560 * columns as u32, 380 * rows as u32), |root| {
         for (area, panel) in root.split_evenly((rows, columns)).iter().zip(panels) {
-            let points = || panel.lines.iter().flat_map(|(_, l)| l.iter().copied());
+            let points = || panel.lines.iter().flat_map(|l| l.points.iter().copied());
             let (x0, x1) =
                 min_max(points().map(|p| p.0).filter(|v| v.is_finite())).unwrap_or((0.0, 1.0));
             let (y0, y1) = panel.y_range.unwrap_or_else(|| {
@@ -424,28 +435,58 @@ pub fn line_panels(
                 .x_label_formatter(&|x| thousands(*x))
                 .label_style(("sans-serif", 13))
                 .draw()?;
-            for (name, line) in &panel.lines {
-                let k = names.iter().position(|n| n == name).unwrap_or(0);
+            // Faint lines first, so every bold line is drawn over them.
+            let order = panel
+                .lines
+                .iter()
+                .filter(|l| l.faint)
+                .chain(panel.lines.iter().filter(|l| !l.faint));
+            let mut labelled: Vec<&str> = Vec::new();
+            for line in order {
+                let k = names.iter().position(|n| *n == line.name).unwrap_or(0);
                 let color = PALETTE[k % PALETTE.len()];
-                chart
-                    .draw_series(LineSeries::new(
-                        line.iter().copied().filter(|p| p.1.is_finite()),
-                        color.stroke_width(2),
-                    ))?
-                    .label(name.clone())
-                    .legend(move |(x, y)| {
-                        PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-                    });
+                let style = if line.faint {
+                    color.mix(0.3).stroke_width(1)
+                } else {
+                    color.stroke_width(2)
+                };
+                // One legend entry per name, from its bold line if it has one.
+                let label = !labelled.contains(&line.name.as_str())
+                    && (!line.faint || panel.lines.iter().all(|l| l.name != line.name || l.faint));
+                let mut pieces = segments(&line.points);
+                if pieces.is_empty() {
+                    pieces.push(Vec::new()); // still one (empty) series for the legend
+                }
+                for (i, piece) in pieces.into_iter().enumerate() {
+                    let series = chart.draw_series(LineSeries::new(piece, style))?;
+                    if label && i == 0 {
+                        series.label(line.name.clone()).legend(move |(x, y)| {
+                            PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+                        });
+                        labelled.push(&line.name);
+                    }
+                }
             }
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .label_font(("sans-serif", 13))
-                .draw()?;
+            if let Some(position) = panel.legend.clone() {
+                chart
+                    .configure_series_labels()
+                    .position(position)
+                    .background_style(WHITE.mix(0.85))
+                    .border_style(BLACK)
+                    .label_font(("sans-serif", 13))
+                    .draw()?;
+            }
         }
         Ok(())
     })
+}
+
+/// The runs of finite points of `line`, split wherever y is not finite.
+fn segments(line: &[(f64, f64)]) -> Vec<Vec<(f64, f64)>> {
+    line.split(|p| !p.1.is_finite())
+        .filter(|piece| !piece.is_empty())
+        .map(<[_]>::to_vec)
+        .collect()
 }
 
 /// Axis labels for step counts: 120000 → "120k".
@@ -454,5 +495,27 @@ fn thousands(x: f64) -> String {
         format!("{}k", (x / 1000.0).round())
     } else {
         format!("{}", x.round())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_non_finite_y_breaks_a_line() {
+        let line = [
+            (0.0, 1.0),
+            (1.0, 2.0),
+            (2.0, f64::NAN),
+            (3.0, 3.0),
+            (4.0, f64::INFINITY),
+            (5.0, f64::NAN),
+        ];
+        assert_eq!(
+            segments(&line),
+            vec![vec![(0.0, 1.0), (1.0, 2.0)], vec![(3.0, 3.0)]]
+        );
+        assert!(segments(&[(0.0, f64::NAN)]).is_empty());
     }
 }

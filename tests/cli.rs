@@ -695,3 +695,90 @@ fn a_recording_that_cannot_be_written_leaves_no_truncated_file() {
     let distance = common::rows(&chunks, "/ant/goal/distance");
     assert!(distance > 0 && distance <= 40, "{distance} distance rows");
 }
+
+/// Pixels of exactly `rgb` in an RGB(A) PNG, and its size.
+fn count_colour(png_path: &Path, rgb: [u8; 3]) -> (usize, (u32, u32)) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(png_path).unwrap(),
+    ));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    let channels = info.color_type.samples();
+    assert!(channels >= 3, "{:?}", info.color_type);
+    let n = buf[..info.buffer_size()]
+        .chunks_exact(channels)
+        .filter(|px| px[..3] == rgb)
+        .count();
+    (n, (info.width, info.height))
+}
+
+#[test]
+fn curves_draw_a_model_per_colour_and_name_lost_log_lines() {
+    let dir = tempfile::tempdir().unwrap();
+    // Two seeds of one model, one of another; seed 1 lost its log after step 3000 of 10000.
+    let run = |name: &str, last_update: u64, steps_done: u64| {
+        let folder = dir.path().join(name);
+        std::fs::create_dir(&folder).unwrap();
+        let mut lines = String::new();
+        for step in (1000..=last_update).step_by(1000) {
+            lines += &format!(
+                "{{\"global_step\":{step},\"charts/episodic_return\":{},\"charts/success\":{},\"charts/triggered_joints\":4}}\n",
+                step as f64 / 100.0,
+                step > 5000
+            );
+            lines += &format!(
+                "{{\"global_step\":{step},\"losses/qf1\":1,\"losses/qf2\":2,\"losses/actor_loss\":-3,\"losses/alpha\":0.1}}\n"
+            );
+        }
+        write(&folder, "metrics.jsonl", &lines);
+        write(
+            &folder,
+            "checkpoint.json",
+            &format!("{{\"steps_done\":{steps_done}}}"),
+        );
+        folder.to_string_lossy().into_owned()
+    };
+    let runs = [
+        run("lstm-s0", 10_000, 10_000),
+        run("lstm-s1", 3_000, 10_000),
+        run("baseline", 10_000, 10_000),
+    ];
+    let out = dir.path().join("curves.png");
+    let result = gaitscope(&[
+        "curves",
+        "--run",
+        &runs[0],
+        &runs[1],
+        &runs[2],
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(result.status.success(), "{}", stderr(&result));
+    let err = stderr(&result);
+    assert!(
+        err.contains("lstm-s1: metrics.jsonl has no lines between steps 3000 and 10000"),
+        "{err}"
+    );
+    assert!(
+        !err.contains("lstm-s0:") && !err.contains("baseline:"),
+        "{err}"
+    );
+    // Two models, two colours (Okabe–Ito blue, vermilion), and no third.
+    let (blue, size) = count_colour(&out, [0, 114, 178]);
+    let (vermilion, _) = count_colour(&out, [213, 94, 0]);
+    let (green, _) = count_colour(&out, [0, 158, 115]);
+    assert_eq!(size, (1120, 1140));
+    assert!(blue > 500 && vermilion > 500, "{blue} {vermilion}");
+    assert_eq!(green, 0);
+    // A broken metrics line is an error naming the file and line.
+    write(
+        Path::new(&runs[2]),
+        "metrics.jsonl",
+        "{oops\n{\"global_step\":1}\n",
+    );
+    let result = gaitscope(&["curves", "--run", &runs[2], "--out", out.to_str().unwrap()]);
+    assert!(!result.status.success());
+    let err = stderr(&result);
+    assert!(err.contains("metrics.jsonl line 1"), "{err}");
+}

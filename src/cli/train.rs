@@ -87,7 +87,8 @@ pub(crate) struct TrainArgs {
 
 #[derive(Args)]
 pub(crate) struct CurvesArgs {
-    /// Run folders (or metrics.jsonl files); each becomes a line named after its folder.
+    /// Run folders (or metrics.jsonl files), each a line named after its folder; folders named
+    /// MODEL-sN are seeds of one model: one colour, a thin line per seed under their mean.
     #[arg(long = "run", value_name = "DIR", required = true, num_args = 1..)]
     runs: Vec<PathBuf>,
     /// The PNG to write.
@@ -183,7 +184,7 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
 
 /// `gaitscope curves`.
 pub(crate) fn curves_command(args: CurvesArgs) -> Result<()> {
-    use gaitscope::train::curves::{RunMetrics, figure};
+    use gaitscope::train::curves::{CurveRun, RunMetrics, figure};
     let mut runs = Vec::new();
     for run in &args.runs {
         let dir = if run.is_dir() {
@@ -191,7 +192,20 @@ pub(crate) fn curves_command(args: CurvesArgs) -> Result<()> {
         } else {
             run.parent().unwrap_or(run)
         };
-        runs.push((gaitscope::eval::model_label(dir), RunMetrics::read(run)?));
+        let metrics = RunMetrics::read(run)?;
+        for (from, to) in metrics.gaps() {
+            eprintln!(
+                "note: {}: metrics.jsonl has no lines between steps {from} and {to}; its curves \
+                 break there",
+                run.display()
+            );
+        }
+        let label = gaitscope::eval::model_label(dir);
+        runs.push(CurveRun {
+            group: gaitscope::eval::seeds::group_of(&label),
+            label,
+            metrics,
+        });
     }
     figure(&runs, &args.out)?;
     eprintln!("wrote {}", args.out.display());

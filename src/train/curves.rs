@@ -4,7 +4,9 @@
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
-use crate::plots::{LinePanel, PlotError, line_panels};
+use plotters::chart::SeriesLabelPosition;
+
+use crate::plots::{Line, LinePanel, PlotError, line_panels};
 
 /// Episodes averaged per point of the return / success / triggers curves.
 pub const EPISODE_WINDOW: usize = 20;
@@ -36,6 +38,9 @@ pub struct RunMetrics {
     pub episodes: Vec<(u64, f64, bool, f64)>,
     /// (step, mean critic loss, actor loss, α) per logged update.
     pub updates: Vec<(u64, f64, f64, f64)>,
+    /// The steps its checkpoint (`checkpoint.json` beside the metrics) says were trained, if
+    /// there is one: a log that stops well before it lost its tail.
+    pub steps_done: Option<u64>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -99,8 +104,73 @@ impl RunMetrics {
         if metrics.episodes.is_empty() {
             return Err(CurvesError::Empty(path));
         }
+        // Unreadable or absent: curves are drawn from a bare metrics file too.
+        metrics.steps_done = path
+            .parent()
+            .and_then(|dir| std::fs::read(dir.join(crate::policy::checkpoint::META_FILE)).ok())
+            .and_then(|bytes| serde_json::from_slice::<serde_json::Value>(&bytes).ok())
+            .and_then(|meta| meta["steps_done"].as_u64());
         Ok(metrics)
     }
+}
+
+impl RunMetrics {
+    /// Stretches of steps with no log lines, as (last logged update, next logged update or the
+    /// checkpoint's step count): where consecutive update lines, or the last one and the
+    /// checkpoint, are more than twice the run's logging interval (its smallest spacing) apart.
+    /// Training logs an update line every interval without fail, so such a stretch means lines
+    /// were lost (e.g. the file was replaced under the trainer); the weights trained on.
+    pub fn gaps(&self) -> Vec<(u64, u64)> {
+        let steps: Vec<u64> = self.updates.iter().map(|u| u.0).collect();
+        let Some(interval) = steps
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .filter(|&d| d > 0)
+            .min()
+        else {
+            return Vec::new();
+        };
+        let ends = steps.iter().copied().chain(self.steps_done);
+        steps
+            .iter()
+            .copied()
+            .zip(ends.skip(1))
+            .filter(|&(a, b)| b > a.saturating_add(2 * interval))
+            .collect()
+    }
+
+    /// The label of a run with gaps names them: "encoder-lstm-s2 (no log 233k–408k)".
+    pub fn label(&self, name: &str) -> String {
+        let gaps = self.gaps();
+        if gaps.is_empty() {
+            return name.to_string();
+        }
+        let k = |s: u64| format!("{}k", s / 1000);
+        let list: Vec<String> = gaps
+            .iter()
+            .map(|&(a, b)| format!("{}–{}", k(a), k(b)))
+            .collect();
+        format!("{name} (no log {})", list.join(", "))
+    }
+}
+
+/// `points` (step, value) with a NaN point inside each gap, so a drawn line breaks there.
+fn broken_at(points: Vec<(f64, f64)>, gaps: &[(u64, u64)]) -> Vec<(f64, f64)> {
+    let mut out = Vec::with_capacity(points.len() + gaps.len());
+    let mut gaps = gaps.iter().peekable();
+    for p in points {
+        while let Some(&&(a, b)) = gaps.peek() {
+            if p.0 <= a as f64 {
+                break;
+            }
+            if out.last().is_some_and(|q: &(f64, f64)| q.0 <= a as f64) {
+                out.push((0.5 * (a + b) as f64, f64::NAN));
+            }
+            gaps.next();
+        }
+        out.push(p);
+    }
+    out
 }
 
 /// Trailing mean over `window` values, one point per value (shorter at the start).
@@ -120,62 +190,174 @@ pub fn rolling_mean(values: &[f64], window: usize) -> Vec<f64> {
         .collect()
 }
 
-/// Draws the six panels for `runs` (label, metrics) into `out`.
-pub fn figure(runs: &[(String, RunMetrics)], out: &Path) -> Result<(), CurvesError> {
-    let episode_line = |m: &RunMetrics, value: fn(&(u64, f64, bool, f64)) -> f64| {
-        let values: Vec<f64> = m.episodes.iter().map(value).collect();
-        m.episodes
-            .iter()
-            .zip(rolling_mean(&values, EPISODE_WINDOW))
-            .map(|(e, v)| (e.0 as f64, v))
-            .collect::<Vec<_>>()
-    };
-    let update_line = |m: &RunMetrics, value: fn(&(u64, f64, f64, f64)) -> f64| {
-        m.updates
-            .iter()
-            .map(|u| (u.0 as f64, value(u)))
-            .collect::<Vec<_>>()
-    };
-    let panel = |title: &str, y: &str, line: &dyn Fn(&RunMetrics) -> Vec<(f64, f64)>| LinePanel {
-        title: title.to_string(),
-        y_label: y.to_string(),
-        lines: runs.iter().map(|(l, m)| (l.clone(), line(m))).collect(),
-        y_range: None,
-    };
-    let w = EPISODE_WINDOW;
-    let panels = [
-        panel(
-            &format!("Episodic return ({w}-episode mean)"),
-            "return",
-            &|m| episode_line(m, |e| e.1),
-        ),
-        LinePanel {
-            y_range: Some((0.0, 1.0)),
-            ..panel(
-                &format!("Success rate ({w}-episode mean)"),
-                "success",
-                &|m| episode_line(m, |e| f64::from(u8::from(e.2))),
-            )
-        },
-        panel("Critic loss (mean of Q1, Q2)", "MSE", &|m| {
-            update_line(m, |u| u.1)
-        }),
-        panel("Actor loss", "loss", &|m| update_line(m, |u| u.2)),
-        panel("Entropy coefficient α", "α", &|m| update_line(m, |u| u.3)),
-        panel(
-            &format!("Triggered joints per episode ({w}-episode mean)"),
-            "joints",
-            &|m| episode_line(m, |e| e.3),
-        ),
-    ];
+/// One run to draw: its model group (runs of one group share a colour), its own label and
+/// its metrics.
+#[derive(Debug, Clone)]
+pub struct CurveRun {
+    pub group: String,
+    pub label: String,
+    pub metrics: RunMetrics,
+}
+
+/// One run's line of one metric, and the stretches its log lost.
+struct Curve {
+    points: Vec<(f64, f64)>,
+    gaps: Vec<(u64, u64)>,
+}
+
+/// Points on which a group's mean over seeds is drawn.
+const MEAN_POINTS: usize = 250;
+
+/// Draws the six panels for `runs` into `out`: a run alone in its group as one line; a group
+/// of several runs (training seeds of one model) as a thin pale line per seed under a bold
+/// line of their mean, drawn where every seed has logged.
+pub fn figure(runs: &[CurveRun], out: &Path) -> Result<(), CurvesError> {
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| CurvesError::Read {
             path: dir.to_path_buf(),
             reason: e.to_string(),
         })?;
     }
-    line_panels(out, "env steps", 2, &panels)?;
+    line_panels(out, "env steps", 2, &panels(runs))?;
     Ok(())
+}
+
+fn episode_line(m: &RunMetrics, value: fn(&(u64, f64, bool, f64)) -> f64) -> Vec<(f64, f64)> {
+    let values: Vec<f64> = m.episodes.iter().map(value).collect();
+    m.episodes
+        .iter()
+        .zip(rolling_mean(&values, EPISODE_WINDOW))
+        .map(|(e, v)| (e.0 as f64, v))
+        .collect()
+}
+
+fn update_line(m: &RunMetrics, value: fn(&(u64, f64, f64, f64)) -> f64) -> Vec<(f64, f64)> {
+    m.updates.iter().map(|u| (u.0 as f64, value(u))).collect()
+}
+
+/// The six panels: return, success, critic loss, actor loss, α, triggered joints.
+fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
+    let mut groups: Vec<(&str, Vec<&CurveRun>)> = Vec::new();
+    for run in runs {
+        match groups.iter_mut().find(|(g, _)| *g == run.group) {
+            Some((_, members)) => members.push(run),
+            None => groups.push((&run.group, vec![run])),
+        }
+    }
+    let lines = |metric: &dyn Fn(&RunMetrics) -> Vec<(f64, f64)>| {
+        let mut lines = Vec::new();
+        for (group, members) in &groups {
+            let curves: Vec<Curve> = members
+                .iter()
+                .map(|r| Curve {
+                    points: metric(&r.metrics),
+                    gaps: r.metrics.gaps(),
+                })
+                .collect();
+            if let [only] = members.as_slice() {
+                lines.push(Line {
+                    name: only.metrics.label(&only.label),
+                    points: broken_at(curves[0].points.clone(), &curves[0].gaps),
+                    faint: false,
+                });
+                continue;
+            }
+            let name = format!("{group} (mean of {} seeds)", members.len());
+            for curve in &curves {
+                lines.push(Line {
+                    name: name.clone(),
+                    points: broken_at(curve.points.clone(), &curve.gaps),
+                    faint: true,
+                });
+            }
+            lines.push(Line {
+                name,
+                points: mean_where_all_logged(&curves),
+                faint: false,
+            });
+        }
+        lines
+    };
+    let w = EPISODE_WINDOW;
+    let panel =
+        |title: String, y: &str, metric: &dyn Fn(&RunMetrics) -> Vec<(f64, f64)>| LinePanel {
+            title,
+            y_label: y.to_string(),
+            lines: lines(metric),
+            y_range: None,
+            legend: None,
+        };
+    vec![
+        LinePanel {
+            legend: Some(SeriesLabelPosition::LowerRight),
+            ..panel(
+                format!("Episodic return ({w}-episode mean)"),
+                "return",
+                &|m| episode_line(m, |e| e.1),
+            )
+        },
+        LinePanel {
+            y_range: Some((0.0, 1.0)),
+            legend: Some(SeriesLabelPosition::LowerRight),
+            ..panel(
+                format!("Success rate ({w}-episode mean)"),
+                "success",
+                &|m| episode_line(m, |e| f64::from(u8::from(e.2))),
+            )
+        },
+        panel("Critic loss (mean of Q1, Q2)".into(), "MSE", &|m| {
+            update_line(m, |u| u.1)
+        }),
+        panel("Actor loss".into(), "loss", &|m| update_line(m, |u| u.2)),
+        panel("Entropy coefficient α".into(), "α", &|m| {
+            update_line(m, |u| u.3)
+        }),
+        panel(
+            format!("Triggered joints per episode ({w}-episode mean)"),
+            "joints",
+            &|m| episode_line(m, |e| e.3),
+        ),
+    ]
+}
+
+/// The mean over runs of each run's latest value at or before x, on [`MEAN_POINTS`] evenly
+/// spaced steps from where the last run starts to where the first run ends; NaN (a break) where
+/// any run is inside one of its gaps or has no finite value.
+fn mean_where_all_logged(curves: &[Curve]) -> Vec<(f64, f64)> {
+    let (Some(lo), Some(hi)) = (
+        curves
+            .iter()
+            .map(|c| c.points.first().map(|p| p.0))
+            .collect::<Option<Vec<_>>>(),
+        curves
+            .iter()
+            .map(|c| c.points.last().map(|p| p.0))
+            .collect::<Option<Vec<_>>>(),
+    ) else {
+        return Vec::new(); // a run with no points: no mean
+    };
+    let lo = lo.into_iter().fold(f64::NEG_INFINITY, f64::max);
+    let hi = hi.into_iter().fold(f64::INFINITY, f64::min);
+    if lo > hi {
+        return Vec::new();
+    }
+    let n = MEAN_POINTS;
+    (0..n)
+        .map(|i| {
+            let x = lo + (hi - lo) * i as f64 / (n - 1) as f64;
+            let mut sum = 0.0;
+            for Curve { points, gaps } in curves {
+                let in_gap = gaps.iter().any(|&(a, b)| (a as f64) < x && x < b as f64);
+                let held = points.partition_point(|p| p.0 <= x);
+                sum += if in_gap || held == 0 {
+                    f64::NAN
+                } else {
+                    points[held - 1].1
+                };
+            }
+            (x, sum / curves.len() as f64)
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -189,6 +371,121 @@ mod tests {
             vec![1.0, 1.5, 2.5, 3.5, 4.5]
         );
         assert_eq!(rolling_mean(&[2.0, 4.0], 10), vec![2.0, 3.0]);
+    }
+
+    #[test]
+    fn lost_lines_show_as_a_gap_that_breaks_the_lines() {
+        let updates = |steps: &[u64]| steps.iter().map(|&s| (s, 0.0, 0.0, 0.0)).collect();
+        let mut m = RunMetrics {
+            updates: updates(&[1000, 2000, 3000, 9000, 10000, 13000, 14000]),
+            ..RunMetrics::default()
+        };
+        // Spacing 1000; 3000 → 9000 and 10000 → 13000 are more than twice that.
+        assert_eq!(m.gaps(), vec![(3000, 9000), (10000, 13000)]);
+        assert_eq!(m.label("run"), "run (no log 3k–9k, 10k–13k)");
+        let line = vec![(2500.0, 1.0), (3000.0, 2.0), (9500.0, 3.0), (14000.0, 4.0)];
+        let broken = broken_at(line, &m.gaps());
+        let shown: Vec<String> = broken.iter().map(|p| format!("{}:{}", p.0, p.1)).collect();
+        assert_eq!(
+            shown,
+            [
+                "2500:1",
+                "3000:2",
+                "6000:NaN",
+                "9500:3",
+                "11500:NaN",
+                "14000:4"
+            ]
+        );
+        // A checkpoint well past the last line: the tail was lost too. Just past it (lines
+        // since the last update, or a checkpoint behind the log): no gap.
+        m.steps_done = Some(20000);
+        assert_eq!(m.gaps(), vec![(3000, 9000), (10000, 13000), (14000, 20000)]);
+        for done in [15000, 14500, 12000] {
+            m.steps_done = Some(done);
+            assert_eq!(m.gaps().len(), 2, "{done}");
+        }
+        // Evenly logged, resumed or not: no gaps, the label is the name.
+        let even = RunMetrics {
+            updates: updates(&[1000, 2000, 3000, 4000]),
+            steps_done: Some(4000),
+            ..RunMetrics::default()
+        };
+        assert!(even.gaps().is_empty());
+        assert_eq!(even.label("run"), "run");
+        assert!(RunMetrics::default().gaps().is_empty());
+    }
+
+    #[test]
+    fn seeds_of_a_model_share_a_colour_under_their_mean() {
+        // α logged every 1000 steps: seed 0 is 1, 2, 3, 4, 5, 6; seed 1 is 3 throughout but
+        // lost its lines between 2000 and 5000.
+        let run = |group: &str, label: &str, alpha: &[(u64, f64)]| CurveRun {
+            group: group.into(),
+            label: label.into(),
+            metrics: RunMetrics {
+                episodes: vec![(1000, 1.0, true, 8.0)],
+                updates: alpha.iter().map(|&(s, a)| (s, 0.0, 0.0, a)).collect(),
+                steps_done: None,
+            },
+        };
+        let seed0: Vec<(u64, f64)> = (1..=6).map(|k| (1000 * k, k as f64)).collect();
+        let runs = [
+            run("lstm", "lstm-s0", &seed0),
+            run(
+                "lstm",
+                "lstm-s1",
+                &[(1000, 3.0), (2000, 3.0), (5000, 3.0), (6000, 3.0)],
+            ),
+            run("baseline", "baseline", &[(1000, 9.0), (2000, 9.0)]),
+        ];
+        let panels = panels(&runs);
+        let alpha = &panels[4];
+        assert_eq!(alpha.title, "Entropy coefficient α");
+        let names: Vec<(&str, bool)> = alpha
+            .lines
+            .iter()
+            .map(|l| (l.name.as_str(), l.faint))
+            .collect();
+        assert_eq!(
+            names,
+            [
+                ("lstm (mean of 2 seeds)", true),
+                ("lstm (mean of 2 seeds)", true),
+                ("lstm (mean of 2 seeds)", false),
+                ("baseline", false),
+            ]
+        );
+        // The mean on 250 points over 1000…6000 (every 5000/249 steps): the latest value of
+        // each seed at or before x, averaged; a break while seed 1 has no log.
+        let mean = &alpha.lines[2].points;
+        assert_eq!(mean.len(), MEAN_POINTS);
+        let at = |x: f64| {
+            let i = ((x - 1000.0) / 5000.0 * 249.0).round() as usize;
+            assert!(
+                (mean[i].0 - x).abs() < 20.1,
+                "grid point {} for {x}",
+                mean[i].0
+            );
+            mean[i].1
+        };
+        assert_eq!(at(1000.0), 2.0); // (1 + 3) / 2
+        assert_eq!(at(1500.0), 2.0);
+        assert_eq!(at(1900.0), 2.0);
+        for x in [2100.0, 3000.0, 4900.0] {
+            assert!(
+                at(x).is_nan(),
+                "{x}: seed 1 logged nothing from 2000 to 5000"
+            );
+        }
+        assert_eq!(at(5200.0), 4.0); // (5 + 3) / 2
+        assert_eq!(at(6000.0), 4.5);
+        // The seed with the gap is broken there, the other is whole.
+        assert!(alpha.lines[1].points.iter().any(|p| p.1.is_nan()));
+        assert!(alpha.lines[0].points.iter().all(|p| p.1.is_finite()));
+        // Only the first row has legends.
+        let legends: Vec<bool> = panels.iter().map(|p| p.legend.is_some()).collect();
+        assert_eq!(legends, [true, true, false, false, false, false]);
     }
 
     #[test]

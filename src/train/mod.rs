@@ -1189,37 +1189,48 @@ struct UpdateMetrics {
     sps: f64,
 }
 
-/// Appends JSON lines to `metrics.jsonl`.
+/// Appends JSON lines to `metrics.jsonl`, opening the file for each line: a file replaced
+/// under a running trainer (a `git stash` or checkout in the work tree) gets the next lines,
+/// where a held handle would write on into the unlinked old file and lose them all.
 struct MetricsLog {
     path: PathBuf,
-    file: std::io::BufWriter<std::fs::File>,
+    line: Vec<u8>,
 }
 
 impl MetricsLog {
     fn open(dir: &Path) -> Result<Self, TrainError> {
-        let path = dir.join(METRICS_FILE);
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
-            .map_err(|source| TrainError::Io {
-                path: path.clone(),
-                source,
-            })?;
-        Ok(Self {
-            path,
-            file: std::io::BufWriter::new(file),
-        })
+        let log = Self {
+            path: dir.join(METRICS_FILE),
+            line: Vec::new(),
+        };
+        log.append(b"")?;
+        Ok(log)
     }
 
     fn write(&mut self, record: &impl Serialize) -> Result<(), TrainError> {
-        let io = |source| TrainError::Io {
+        self.line.clear();
+        serde_json::to_writer(&mut self.line, record).map_err(|e| TrainError::Io {
             path: self.path.clone(),
-            source,
-        };
-        serde_json::to_writer(&mut self.file, record).map_err(|e| io(e.into()))?;
-        self.file.write_all(b"\n").map_err(io)?;
-        self.file.flush().map_err(io)
+            source: e.into(),
+        })?;
+        self.line.push(b'\n');
+        let line = std::mem::take(&mut self.line);
+        let written = self.append(&line);
+        self.line = line;
+        written
+    }
+
+    /// One `write` call per line, so a line is never split between two files.
+    fn append(&self, bytes: &[u8]) -> Result<(), TrainError> {
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.path)
+            .and_then(|mut f| f.write_all(bytes))
+            .map_err(|source| TrainError::Io {
+                path: self.path.clone(),
+                source,
+            })
     }
 }
 
@@ -1633,6 +1644,28 @@ mod tests {
             ),
             (BufferSource::Refilled, 0, 200)
         );
+    }
+
+    #[test]
+    fn metrics_lines_follow_a_file_replaced_under_the_trainer() {
+        // What `git stash` does to a tracked metrics.jsonl: a new file takes the name.
+        let dir = tempfile::tempdir().unwrap();
+        let mut log = MetricsLog::open(dir.path()).unwrap();
+        let line = |step: u64| serde_json::json!({ "global_step": step });
+        log.write(&line(1)).unwrap();
+        let path = dir.path().join(METRICS_FILE);
+        let replacement = dir.path().join("replacement");
+        std::fs::write(&replacement, "{\"global_step\":0}\n").unwrap();
+        std::fs::rename(&replacement, &path).unwrap();
+        log.write(&line(2)).unwrap();
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "{\"global_step\":0}\n{\"global_step\":2}\n"
+        );
+        // A folder that went away is an error naming the file, not a silent loss.
+        drop(dir);
+        let e = log.write(&line(3)).unwrap_err().to_string();
+        assert!(e.contains(METRICS_FILE), "{e}");
     }
 
     #[test]
