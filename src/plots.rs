@@ -3,6 +3,9 @@
 //! Each figure is drawn to a temporary file and renamed into place.
 
 use plotters::prelude::*;
+
+/// Where a figure's legend goes (plotters' type, re-exported for the figures' callers).
+pub use plotters::chart::SeriesLabelPosition;
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
@@ -40,6 +43,46 @@ pub const PALETTE: [RGBColor; 6] = [
     RGBColor(86, 180, 233),
 ];
 
+/// The committed models (`checkpoints/`, `scripts/results.sh`) in the order the docs list them:
+/// their colour slots in every figure, with [`colour_slots`].
+pub const MODEL_COLOURS: [&str; 4] = [
+    "baseline",
+    "encoder-lstm",
+    "encoder-mlp",
+    "encoder-lstm-aux",
+];
+
+/// Palette slots for series keys: a key listed in `fixed` takes its index there (so one model
+/// has one colour in every figure), any other key the lowest slot no key of this figure holds,
+/// in order of first appearance; equal keys share a slot.
+pub fn colour_slots(keys: &[&str], fixed: &[&str]) -> Vec<usize> {
+    let mut taken: Vec<usize> = keys
+        .iter()
+        .filter_map(|k| fixed.iter().position(|f| f == k))
+        .collect();
+    let mut assigned: Vec<(&str, usize)> = Vec::new();
+    keys.iter()
+        .map(|&key| {
+            if let Some(slot) = fixed.iter().position(|f| *f == key) {
+                return slot;
+            }
+            if let Some(&(_, slot)) = assigned.iter().find(|(k, _)| *k == key) {
+                return slot;
+            }
+            let slot = (0..)
+                .find(|s| !taken.contains(s))
+                .expect("an unbounded range has a free slot");
+            taken.push(slot);
+            assigned.push((key, slot));
+            slot
+        })
+        .collect()
+}
+
+fn palette(slot: usize) -> RGBColor {
+    PALETTE[slot % PALETTE.len()]
+}
+
 /// Renders with `draw` into `path` via a temp file + rename.
 pub fn render(
     path: &Path,
@@ -73,6 +116,10 @@ pub fn render(
 /// One series of a grouped error-bar chart: a value and interval per category.
 pub struct ErrorBarSeries {
     pub label: String,
+    /// Palette slot ([`colour_slots`]).
+    pub colour: usize,
+    /// Whether `label` gets a legend entry (one per colour when several series share one).
+    pub in_legend: bool,
     /// (value, low, high) per category.
     pub points: Vec<(f64, f64, f64)>,
     /// Values drawn as small open circles beside each point (e.g. one per training seed);
@@ -80,7 +127,7 @@ pub struct ErrorBarSeries {
     pub dots: Vec<Vec<f64>>,
 }
 
-/// Points with error bars, grouped by category, one colour per series.
+/// Points with error bars, grouped by category, side by side within each in series order.
 pub fn error_bars(
     path: &Path,
     title: &str,
@@ -115,31 +162,37 @@ pub fn error_bars(
             .disable_x_mesh()
             .label_style(("sans-serif", 16))
             .draw()?;
+        // The series of one category spread over at most 0.84 of the gap between categories.
+        let spacing = (0.84 / n).min(0.12);
+        let (whisker, radius) = if spacing < 0.06 { (6, 3) } else { (12, 5) };
         for (s, ser) in series.iter().enumerate() {
-            let color = PALETTE[s % PALETTE.len()];
-            let offset = (s as f64 - (n - 1.0) / 2.0) * 0.12;
-            chart
-                .draw_series(ser.points.iter().enumerate().map(|(c, &(v, lo, hi))| {
+            let color = palette(ser.colour);
+            let offset = (s as f64 - (n - 1.0) / 2.0) * spacing;
+            let bars =
+                chart.draw_series(ser.points.iter().enumerate().map(|(c, &(v, lo, hi))| {
                     ErrorBar::new_vertical(
                         c as f64 + offset,
                         lo,
                         v,
                         hi,
                         color.filled().stroke_width(2),
-                        12,
+                        whisker,
                     )
-                }))?
-                .label(ser.label.clone())
-                .legend(move |(x, y)| Circle::new((x + 10, y), 5, color.filled()));
-            chart.draw_series(
-                ser.points
-                    .iter()
-                    .enumerate()
-                    .map(|(c, &(v, _, _))| Circle::new((c as f64 + offset, v), 5, color.filled())),
-            )?;
+                }))?;
+            if ser.in_legend {
+                bars.label(ser.label.clone())
+                    .legend(move |(x, y)| Circle::new((x + 10, y), 5, color.filled()));
+            }
+            chart.draw_series(ser.points.iter().enumerate().map(|(c, &(v, _, _))| {
+                Circle::new((c as f64 + offset, v), radius, color.filled())
+            }))?;
             chart.draw_series(ser.dots.iter().enumerate().flat_map(|(c, values)| {
                 values.iter().map(move |&v| {
-                    Circle::new((c as f64 + offset + 0.035, v), 3, color.stroke_width(1))
+                    Circle::new(
+                        (c as f64 + offset + 0.3 * spacing, v),
+                        3,
+                        color.stroke_width(1),
+                    )
                 })
             }))?;
         }
@@ -229,6 +282,10 @@ pub fn stacked_bars(
 /// A line with a shaded band (mean ± spread) per series over a shared x axis.
 pub struct BandSeries {
     pub label: String,
+    /// Palette slot ([`colour_slots`]).
+    pub colour: usize,
+    /// A dashed mean line (e.g. ankles beside solid hips of one leg's colour).
+    pub dashed: bool,
     pub x: Vec<f64>,
     pub mean: Vec<f64>,
     pub low: Vec<f64>,
@@ -242,6 +299,7 @@ pub fn bands(
     y_label: &str,
     series: &[BandSeries],
     vertical_marker: Option<f64>,
+    legend_at: SeriesLabelPosition,
 ) -> Result<(), PlotError> {
     let finite = |v: &f64| v.is_finite();
     let xs = series
@@ -267,8 +325,8 @@ pub fn bands(
             .y_desc(y_label)
             .label_style(("sans-serif", 15))
             .draw()?;
-        for (s, ser) in series.iter().enumerate() {
-            let color = PALETTE[s % PALETTE.len()];
+        for ser in series {
+            let color = palette(ser.colour);
             let upper: Vec<(f64, f64)> = ser
                 .x
                 .iter()
@@ -286,21 +344,28 @@ pub fn bands(
                 [upper, lower].concat(),
                 color.mix(0.18),
             )))?;
-            chart
-                .draw_series(LineSeries::new(
-                    ser.x.iter().copied().zip(ser.mean.iter().copied()),
-                    color.stroke_width(2),
-                ))?
-                .label(ser.label.clone())
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-                });
+            let mean = || ser.x.iter().copied().zip(ser.mean.iter().copied());
+            let style = color.stroke_width(2);
+            let drawn = if ser.dashed {
+                chart.draw_series(DashedLineSeries::new(mean(), 8, 5, style))?
+            } else {
+                chart.draw_series(LineSeries::new(mean(), style))?
+            };
+            let dashed = ser.dashed;
+            drawn.label(ser.label.clone()).legend(move |(x, y)| {
+                if dashed {
+                    PathElement::new(vec![(x, y), (x + 8, y)], style)
+                } else {
+                    PathElement::new(vec![(x, y), (x + 20, y)], style)
+                }
+            });
         }
         if let Some(x) = vertical_marker {
             chart.draw_series(LineSeries::new([(x, y0), (x, y1)], BLACK.mix(0.6)))?;
         }
         chart
             .configure_series_labels()
+            .position(legend_at)
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK)
             .draw()?;
@@ -380,6 +445,8 @@ fn padded((lo, hi): (f64, f64)) -> (f64, f64) {
 /// One line of a [`LinePanel`]. Lines share a colour (and one legend entry) by `name`.
 pub struct Line {
     pub name: String,
+    /// Palette slot ([`colour_slots`]).
+    pub colour: usize,
     /// A point whose y is not finite (e.g. NaN) breaks the line: nothing is drawn across it.
     pub points: Vec<(f64, f64)>,
     /// Thin and pale (one seed of a group), under the group's bold line.
@@ -397,7 +464,7 @@ pub struct LinePanel {
     pub legend: Option<SeriesLabelPosition>,
 }
 
-/// Panels on a grid of `columns`, sharing the x label; one colour per line name across panels.
+/// Panels on a grid of `columns`, sharing the x label; one legend entry per line name.
 pub fn line_panels(
     path: &Path,
     x_label: &str,
@@ -406,12 +473,6 @@ pub fn line_panels(
 ) -> Result<(), PlotError> {
     let columns = columns.max(1);
     let rows = panels.len().div_ceil(columns).max(1);
-    let mut names: Vec<&str> = Vec::new();
-    for line in panels.iter().flat_map(|p| &p.lines) {
-        if !names.contains(&line.name.as_str()) {
-            names.push(&line.name);
-        }
-    }
     render(path, (560 * columns as u32, 380 * rows as u32), |root| {
         for (area, panel) in root.split_evenly((rows, columns)).iter().zip(panels) {
             let points = || panel.lines.iter().flat_map(|l| l.points.iter().copied());
@@ -443,8 +504,7 @@ pub fn line_panels(
                 .chain(panel.lines.iter().filter(|l| !l.faint));
             let mut labelled: Vec<&str> = Vec::new();
             for line in order {
-                let k = names.iter().position(|n| *n == line.name).unwrap_or(0);
-                let color = PALETTE[k % PALETTE.len()];
+                let color = palette(line.colour);
                 let style = if line.faint {
                     color.mix(0.3).stroke_width(1)
                 } else {
@@ -517,5 +577,22 @@ mod tests {
             vec![vec![(0.0, 1.0), (1.0, 2.0)], vec![(3.0, 3.0)]]
         );
         assert!(segments(&[(0.0, f64::NAN)]).is_empty());
+    }
+
+    #[test]
+    fn listed_keys_keep_their_colour_and_others_take_free_slots() {
+        let fixed = ["baseline", "lstm", "mlp"];
+        // Without the baseline, lstm and mlp keep slots 1 and 2.
+        assert_eq!(colour_slots(&["lstm", "mlp"], &fixed), [1, 2]);
+        assert_eq!(
+            colour_slots(&["mlp", "baseline", "lstm", "mlp"], &fixed),
+            [2, 0, 1, 2]
+        );
+        // Other keys fill the slots this figure leaves free, one per key.
+        assert_eq!(
+            colour_slots(&["a", "lstm", "b", "a", "c"], &fixed),
+            [0, 1, 2, 0, 3]
+        );
+        assert_eq!(colour_slots(&["x", "y"], &[]), [0, 1]);
     }
 }

@@ -696,23 +696,6 @@ fn a_recording_that_cannot_be_written_leaves_no_truncated_file() {
     assert!(distance > 0 && distance <= 40, "{distance} distance rows");
 }
 
-/// Pixels of exactly `rgb` in an RGB(A) PNG, and its size.
-fn count_colour(png_path: &Path, rgb: [u8; 3]) -> (usize, (u32, u32)) {
-    let decoder = png::Decoder::new(std::io::BufReader::new(
-        std::fs::File::open(png_path).unwrap(),
-    ));
-    let mut reader = decoder.read_info().unwrap();
-    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-    let info = reader.next_frame(&mut buf).unwrap();
-    let channels = info.color_type.samples();
-    assert!(channels >= 3, "{:?}", info.color_type);
-    let n = buf[..info.buffer_size()]
-        .chunks_exact(channels)
-        .filter(|px| px[..3] == rgb)
-        .count();
-    (n, (info.width, info.height))
-}
-
 #[test]
 fn curves_draw_a_model_per_colour_and_name_lost_log_lines() {
     let dir = tempfile::tempdir().unwrap();
@@ -765,9 +748,9 @@ fn curves_draw_a_model_per_colour_and_name_lost_log_lines() {
         "{err}"
     );
     // Two models, two colours (Okabe–Ito blue, vermilion), and no third.
-    let (blue, size) = count_colour(&out, [0, 114, 178]);
-    let (vermilion, _) = count_colour(&out, [213, 94, 0]);
-    let (green, _) = count_colour(&out, [0, 158, 115]);
+    let (blue, size) = common::count_colour(&out, [0, 114, 178]);
+    let (vermilion, _) = common::count_colour(&out, [213, 94, 0]);
+    let (green, _) = common::count_colour(&out, [0, 158, 115]);
     assert_eq!(size, (1120, 1140));
     assert!(blue > 500 && vermilion > 500, "{blue} {vermilion}");
     assert_eq!(green, 0);

@@ -1,5 +1,7 @@
 //! eval and probe end to end on small saved models: determinism, outputs, clear errors.
 
+mod common;
+
 use candle_core::Device;
 use gaitscope::eval::{EvalOptions, evaluate, write_outputs};
 use gaitscope::policy::checkpoint::TrainingRecord;
@@ -343,6 +345,18 @@ fn eval_groups_seeds_and_pairs_them_by_training_seed() {
         json["across_seeds"]["improvements"][0]["probability_of_improvement"]["mean"].is_number()
     );
     assert!(json["across_seeds"]["groups"][0]["success_iqm"]["low"].is_number());
+    // The per-run figure: four runs, two models, two colours (baseline blue, the encoder the
+    // next free one), never a colour per run.
+    let out = tmp.path().join("out");
+    write_outputs(&report, &out).unwrap();
+    let figure = out.join("success_by_condition.png");
+    let (blue, _) = common::count_colour(&figure, [0, 114, 178]);
+    let (vermilion, _) = common::count_colour(&figure, [213, 94, 0]);
+    let (green, _) = common::count_colour(&figure, [0, 158, 115]);
+    assert!(
+        blue > 100 && vermilion > 100 && green == 0,
+        "{blue} {vermilion} {green}"
+    );
 }
 
 #[test]
@@ -358,7 +372,10 @@ fn two_runs_with_one_training_seed_in_a_group_are_an_error() {
 #[test]
 fn probe_cross_validates_several_seeds() {
     let tmp = tempfile::tempdir().unwrap();
-    let (a, b) = (tmp.path().join("encoder"), tmp.path().join("encoder-s1"));
+    let (a, b) = (
+        tmp.path().join("encoder-lstm"),
+        tmp.path().join("encoder-lstm-s1"),
+    );
     save_model(&a, EncoderKind::Lstm, 3);
     save_model(&b, EncoderKind::Lstm, 4);
     let out_dir = tmp.path().join("probe");
@@ -397,11 +414,17 @@ fn probe_cross_validates_several_seeds() {
     for name in [
         "probe-cv.md",
         "probe_latency.png",
-        "encoder/pca_z.png",
-        "encoder-s1/pca_z.png",
+        "encoder-lstm/pca_z.png",
+        "encoder-lstm-s1/pca_z.png",
     ] {
         assert!(out_dir.join(name).exists(), "{name}");
     }
+    // The LSTM keeps its colour of every figure (vermilion, beside the baseline's blue) in a
+    // figure without the baseline.
+    let latency = out_dir.join("probe_latency.png");
+    let (vermilion, _) = common::count_colour(&latency, [213, 94, 0]);
+    let (blue, _) = common::count_colour(&latency, [0, 114, 178]);
+    assert!(vermilion > 100 && blue == 0, "{vermilion} {blue}");
     let e = gaitscope(&[
         "probe",
         "--checkpoint",

@@ -677,6 +677,22 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         }
     }
     let names: Vec<&str> = conditions.iter().map(|c| c.name()).collect();
+    // One colour per model (the runs of its seeds side by side), one legend entry per model.
+    let groups: Vec<String> = models.iter().map(|m| seeds::group_of(m)).collect();
+    let keys: Vec<&str> = groups.iter().map(String::as_str).collect();
+    let colours = plots::colour_slots(&keys, &plots::MODEL_COLOURS);
+    // (legend entry, colour) per run: the first run of each model names it.
+    let styles: Vec<(Option<String>, usize)> = (0..models.len())
+        .map(|k| {
+            let runs = keys.iter().filter(|g| **g == keys[k]).count();
+            let first = keys.iter().position(|g| *g == keys[k]) == Some(k);
+            let legend = first.then(|| match runs {
+                1 => models[k].to_string(),
+                n => format!("{} ({n} runs)", keys[k]),
+            });
+            (legend, colours[k])
+        })
+        .collect();
     let get = |m: &str, c: Case| {
         report
             .cells
@@ -685,8 +701,11 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
     };
     let success: Vec<ErrorBarSeries> = models
         .iter()
-        .map(|m| ErrorBarSeries {
-            label: m.to_string(),
+        .enumerate()
+        .map(|(k, m)| ErrorBarSeries {
+            label: styles[k].0.clone().unwrap_or_default(),
+            colour: styles[k].1,
+            in_legend: styles[k].0.is_some(),
             dots: Vec::new(),
             points: conditions
                 .iter()
@@ -713,8 +732,11 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
     )?;
     let distance: Vec<ErrorBarSeries> = models
         .iter()
-        .map(|m| ErrorBarSeries {
-            label: m.to_string(),
+        .enumerate()
+        .map(|(k, m)| ErrorBarSeries {
+            label: styles[k].0.clone().unwrap_or_default(),
+            colour: styles[k].1,
+            in_legend: styles[k].0.is_some(),
             dots: Vec::new(),
             points: conditions
                 .iter()
@@ -779,14 +801,18 @@ fn across_seeds_figures(
             .iter()
             .find(|x| x.group == g && x.condition == c)
     };
+    let colours = plots::colour_slots(&groups, &plots::MODEL_COLOURS);
     let series: Vec<ErrorBarSeries> = groups
         .iter()
-        .map(|&g| {
+        .zip(colours)
+        .map(|(&g, colour)| {
             let cells: Vec<&seeds::GroupCell> =
                 conditions.iter().filter_map(|&c| get(g, c)).collect();
             let n_seeds = cells.first().map_or(0, |c| c.runs.len());
             ErrorBarSeries {
                 label: format!("{g} ({n_seeds} seeds)"),
+                colour,
+                in_legend: true,
                 points: cells
                     .iter()
                     .map(|c| {

@@ -358,10 +358,13 @@ impl ProbeReport {
     /// Accuracy vs steps since the first trigger, one line per model: the mean over its seeds,
     /// the band their min and max (a single seed draws a line alone).
     pub fn latency_figure(&self, path: &std::path::Path) -> Result<(), ProbeError> {
-        let series: Vec<crate::plots::BandSeries> = self
-            .groups()
-            .into_iter()
-            .map(|(group, runs)| {
+        let groups = self.groups();
+        let keys: Vec<&str> = groups.iter().map(|(g, _)| g.as_ref()).collect();
+        let colours = crate::plots::colour_slots(&keys, &crate::plots::MODEL_COLOURS);
+        let series: Vec<crate::plots::BandSeries> = groups
+            .iter()
+            .zip(colours)
+            .map(|((group, runs), colour)| {
                 let xs: Vec<i64> = LATENCY_RANGE.collect();
                 let mut x = Vec::new();
                 let (mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new());
@@ -380,6 +383,8 @@ impl ProbeReport {
                 }
                 crate::plots::BandSeries {
                     label: format!("{group} ({} seeds)", runs.len()),
+                    colour,
+                    dashed: false,
                     x,
                     mean,
                     low,
@@ -394,6 +399,7 @@ impl ProbeReport {
             "accuracy (%)",
             &series,
             Some(0.0),
+            crate::plots::SeriesLabelPosition::LowerRight,
         )?;
         Ok(())
     }

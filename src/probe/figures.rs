@@ -40,7 +40,7 @@ fn aligned(
 }
 
 /// Mean and ±1 standard deviation over curves, ignoring missing points.
-fn band(label: &str, xs: &[f64], curves: &[Vec<f64>]) -> BandSeries {
+fn band(label: &str, colour: usize, xs: &[f64], curves: &[Vec<f64>]) -> BandSeries {
     let (mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new());
     for k in 0..xs.len() {
         let v: Vec<f64> = curves
@@ -56,6 +56,8 @@ fn band(label: &str, xs: &[f64], curves: &[Vec<f64>]) -> BandSeries {
     }
     BandSeries {
         label: format!("{label} (n = {})", curves.len()),
+        colour,
+        dashed: false,
         x: xs.to_vec(),
         mean,
         low,
@@ -63,9 +65,11 @@ fn band(label: &str, xs: &[f64], curves: &[Vec<f64>]) -> BandSeries {
     }
 }
 
-/// The figures: PCA scatter, onset alignment, fatigue asymmetry.
+/// The figures of the run `model` (its folder's name): PCA scatter, onset alignment, fatigue
+/// asymmetry.
 pub fn figures(
     file: &ProbeFile,
+    model: &str,
     encoder: &[ProbeStep],
     baseline: Option<&[ProbeStep]>,
     out: &Path,
@@ -75,6 +79,11 @@ pub fn figures(
         reason: e.to_string(),
     })?;
     let mut written = Vec::new();
+    // This model's colour and the baseline's, as in every other figure.
+    let colours = plots::colour_slots(
+        &[&crate::eval::seeds::group_of(model), "baseline"],
+        &plots::MODEL_COLOURS,
+    );
 
     // PCA of z, coloured by number of damaged joints.
     let mut classes: Vec<(String, Vec<(f64, f64)>)> = (0..=N_ACTUATORS)
@@ -125,19 +134,22 @@ pub fn figures(
         "Latent shift at damage onset: distance of z from its pre-onset mean",
         "steps since first trigger",
         "‖z − mean z before onset‖",
-        &[band("encoder", &xs, &shift)],
+        &[band(model, colours[0], &xs, &shift)],
         Some(0.0),
+        plots::SeriesLabelPosition::UpperLeft,
     )?;
     written.push(path);
     let dt = 0.05;
     let mut progress = vec![band(
-        "encoder",
+        model,
+        colours[0],
         &xs,
         &aligned(encoder, range.clone(), |s, _| s.progress / dt),
     )];
     if let Some(base) = baseline {
         progress.push(band(
             "baseline",
+            colours[1],
             &xs,
             &aligned(base, range.clone(), |s, _| s.progress / dt),
         ));
@@ -150,6 +162,7 @@ pub fn figures(
         "progress (m/s)",
         &progress,
         Some(0.0),
+        plots::SeriesLabelPosition::LowerRight,
     )?;
     written.push(path);
 
@@ -164,6 +177,10 @@ pub fn figures(
                 let y: Vec<f64> = ep.iter().map(|s| s.fatigue[i]).collect();
                 BandSeries {
                     label: file.joint_names[i].clone(),
+                    // Actuators come in (hip, ankle) pairs per leg: a colour per leg, the
+                    // ankle dashed, so eight lines read apart with six colours.
+                    colour: i / 2,
+                    dashed: file.joint_names[i].starts_with("ankle"),
                     x: ep.iter().map(|s| s.t as f64).collect(),
                     mean: y.clone(),
                     low: y.clone(),
@@ -179,6 +196,8 @@ pub fn figures(
             "fatigue",
             &series,
             None,
+            // Fatigue only grows: the start of the episode stays clear.
+            plots::SeriesLabelPosition::UpperLeft,
         )?;
         written.push(path);
     }
@@ -231,7 +250,9 @@ pub fn figures(
         "step",
         &names,
         &[ErrorBarSeries {
-            label: "encoder policy".into(),
+            label: model.to_string(),
+            colour: colours[0],
+            in_legend: true,
             dots: Vec::new(),
             points,
         }],

@@ -172,6 +172,8 @@ pub fn onset_figure(runs: &[OnsetAttribution], path: &Path) -> Result<String, Pr
         }
         series.push(crate::plots::BandSeries {
             label: (*name).to_string(),
+            colour: g,
+            dashed: false,
             x,
             mean,
             low,
@@ -190,6 +192,8 @@ pub fn onset_figure(runs: &[OnsetAttribution], path: &Path) -> Result<String, Pr
         "attribution to ‖z − z(0)‖",
         &series,
         Some(0.0),
+        // z drifts from z(0) as the episode goes on: the early, low part stays clear.
+        crate::plots::SeriesLabelPosition::UpperLeft,
     )?;
     // In words: each series' mean before (−10…−1) and after (0…50) the trigger.
     let window_mean = |s: &crate::plots::BandSeries, after: bool| {

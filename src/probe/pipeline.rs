@@ -111,8 +111,13 @@ pub fn run(opts: &ProbeOptions) -> Result<ProbeRun, ProbeError> {
         } else {
             opts.out.clone()
         };
-        run.written
-            .extend(figures(&file, &steps, baseline.as_deref(), &figures_dir)?);
+        run.written.extend(figures(
+            &file,
+            &label,
+            &steps,
+            baseline.as_deref(),
+            &figures_dir,
+        )?);
         let cv = probe_cv(
             &label,
             &steps,

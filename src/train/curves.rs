@@ -4,9 +4,9 @@
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
-use plotters::chart::SeriesLabelPosition;
-
-use crate::plots::{Line, LinePanel, PlotError, line_panels};
+use crate::plots::{
+    Line, LinePanel, MODEL_COLOURS, PlotError, SeriesLabelPosition, colour_slots, line_panels,
+};
 
 /// Episodes averaged per point of the return / success / triggers curves.
 pub const EPISODE_WINDOW: usize = 20;
@@ -244,9 +244,11 @@ fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
             None => groups.push((&run.group, vec![run])),
         }
     }
+    let keys: Vec<&str> = groups.iter().map(|(g, _)| *g).collect();
+    let colours = colour_slots(&keys, &MODEL_COLOURS);
     let lines = |metric: &dyn Fn(&RunMetrics) -> Vec<(f64, f64)>| {
         let mut lines = Vec::new();
-        for (group, members) in &groups {
+        for ((group, members), &colour) in groups.iter().zip(&colours) {
             let curves: Vec<Curve> = members
                 .iter()
                 .map(|r| Curve {
@@ -257,6 +259,7 @@ fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
             if let [only] = members.as_slice() {
                 lines.push(Line {
                     name: only.metrics.label(&only.label),
+                    colour,
                     points: broken_at(curves[0].points.clone(), &curves[0].gaps),
                     faint: false,
                 });
@@ -266,12 +269,14 @@ fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
             for curve in &curves {
                 lines.push(Line {
                     name: name.clone(),
+                    colour,
                     points: broken_at(curve.points.clone(), &curve.gaps),
                     faint: true,
                 });
             }
             lines.push(Line {
                 name,
+                colour,
                 points: mean_where_all_logged(&curves),
                 faint: false,
             });
@@ -456,6 +461,9 @@ mod tests {
                 ("baseline", false),
             ]
         );
+        // The baseline keeps its colour of every figure (slot 0); lstm takes the next free one.
+        let colours: Vec<usize> = alpha.lines.iter().map(|l| l.colour).collect();
+        assert_eq!(colours, [1, 1, 1, 0]);
         // The mean on 250 points over 1000…6000 (every 5000/249 steps): the latest value of
         // each seed at or before x, averaged; a break while seed 1 has no log.
         let mean = &alpha.lines[2].points;

@@ -342,3 +342,20 @@ pub fn filled_replay(
     }
     replay
 }
+
+/// Pixels of exactly `rgb` in an RGB(A) PNG, and its size.
+pub fn count_colour(png_path: &std::path::Path, rgb: [u8; 3]) -> (usize, (u32, u32)) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(png_path).unwrap(),
+    ));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    let channels = info.color_type.samples();
+    assert!(channels >= 3, "{:?}", info.color_type);
+    let n = buf[..info.buffer_size()]
+        .chunks_exact(channels)
+        .filter(|px| px[..3] == rgb)
+        .count();
+    (n, (info.width, info.height))
+}
