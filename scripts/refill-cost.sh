@@ -6,8 +6,11 @@
 # difference is the buffer. `report` compares success and return over the last 20k steps.
 #
 #   scripts/refill-cost.sh run [CORE]   # resumable; nice 19, pinned to CORE (default 1)
-#   scripts/refill-cost.sh report       # the table, markdown (docs/training.md)
+#   scripts/refill-cost.sh report       # the tables, markdown (docs/training.md)
 #
+# `report` also evaluates each finished pair's two 100k checkpoints on the same paired eval
+# seeds (EVAL_EPISODES per condition, default 100; deterministic actions, 500-step limit): the
+# training-tail numbers rest on ~25 exploring episodes each, the evaluation on 300.
 # HALF / STEPS / LAST override 50000 / 100000 / 20000 (a quick trial of the script itself).
 set -euo pipefail
 
@@ -83,10 +86,27 @@ case "${1:-}" in
     echo "refill-cost runs done: scripts/refill-cost.sh report"
     ;;
   report)
-    python3 - "$out" "$steps" "$last" "${seeds[@]}" <<'EOF'
+    # The finished pairs, evaluated together (eval needs the binary; build it if absent).
+    pairs=()
+    for seed in "${seeds[@]}"; do
+      a="$out/none-s$seed-straight" b="$out/none-s$seed-refilled"
+      if [ "$(steps_done "$a")" -ge "$steps" ] && [ "$(steps_done "$b")" -ge "$steps" ]; then
+        pairs+=("$a" "$b")
+      fi
+    done
+    evaluated=""
+    if [ ${#pairs[@]} -gt 0 ]; then
+      evaluated=$(mktemp -d)
+      trap 'rm -rf "$evaluated"' EXIT
+      bin="${GAITSCOPE_BIN:-${CARGO_TARGET_DIR}/release/gaitscope}"
+      [ -x "$bin" ] || (cd "$root" && ${CARGO:-cargo} build --release --quiet)
+      "$bin" eval --checkpoint "${pairs[@]}" --episodes "${EVAL_EPISODES:-100}" \
+        --out "$evaluated" >/dev/null
+    fi
+    python3 - "$out" "$steps" "$last" "$evaluated" "${seeds[@]}" <<'EOF'
 import json, statistics, sys
-out, steps, last = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-seeds = sys.argv[4:]
+out, steps, last, evaluated = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+seeds = sys.argv[5:]
 
 def steps_done(run):
     try:
@@ -143,6 +163,34 @@ if pairs:
     print()
     print("refilled − straight, mean return per seed: "
           + ", ".join(f"{d:+.1f}" for d in diffs) + f" (mean {statistics.mean(diffs):+.1f})")
+if evaluated:
+    report = json.load(open(f"{evaluated}/eval.json"))
+    by_run = {}
+    for e in report["episodes"]:
+        by_run.setdefault(e["model"], []).append(e)
+    n = report["episodes_per_cell"]
+    print()
+    print(f"Evaluation of the 100k checkpoints ({n} paired episodes per condition, healthy, mild "
+          f"and severe pooled; deterministic actions, {report['max_steps']}-step limit):")
+    print()
+    print("| seed | run | success | mean final distance (m) | mean return |")
+    print("|---|---|---:|---:|---:|")
+    dist = {"straight": [], "refilled": []}
+    for seed in seeds:
+        for kind in ["straight", "refilled"]:
+            eps = by_run.get(f"none-s{seed}-{kind}")
+            if not eps:
+                continue
+            succ = 100 * sum(e["success"] for e in eps) / len(eps)
+            d = statistics.mean(e["final_distance"] for e in eps)
+            dist[kind].append(d)
+            ret = statistics.mean(e["return"] for e in eps)
+            print(f"| {seed} | {kind} | {succ:.1f} % | {d:.2f} | {ret:.1f} |")
+    diffs = [r - s for s, r in zip(dist["straight"], dist["refilled"])]
+    print()
+    print("refilled − straight, mean final distance per seed (m; negative: the refilled run ends "
+          "closer): " + ", ".join(f"{d:+.2f}" for d in diffs)
+          + f" (mean {statistics.mean(diffs):+.2f})")
 EOF
     ;;
   *)
