@@ -286,6 +286,12 @@ pub fn improvement_bootstrap(
     percentile_interval(point, draws)
 }
 
+/// The smallest two-sided p the sign-flip test can give with `seeds` paired seeds: the observed
+/// signs and their mirror image are 2 of the 2ⁿ sign patterns.
+pub fn sign_flip_floor(seeds: usize) -> f64 {
+    2.0 / 2f64.powi(seeds as i32)
+}
+
 /// Seed-level paired test: flips the sign of every seed's difference (encoder − baseline rate)
 /// in all 2^S ways; p is the share of flips whose |sum| is at least the observed one. With three
 /// seeds its smallest possible value is 0.25: three seeds cannot be significant at seed level.
@@ -700,9 +706,10 @@ impl AcrossSeeds {
                   seeds; b = baseline only, c = encoder only; pooled: Cochran–Mantel–Haenszel with \
                   pairs as strata, i.e. McNemar on the summed discordant pairs, and its exact sign \
                   test; seed sign-flip: the paired permutation test over seeds' mean differences, \
-                  whose floor with three seeds is 0.25)\n\n\
+                  two-sided; with n paired seeds it cannot go below 2/2ⁿ, its floor: 0.25 with \
+                  three seeds, 0.031 with six)\n\n\
                   | encoder | condition | per seed b/c (exact p) | pooled b/c | χ² | p (χ²) | p (exact) \
-                  | mean Δ | seed sign-flip p |\n|---|---|---|---:|---:|---:|---:|---:|---:|\n";
+                  | mean Δ | seed sign-flip p (floor) |\n|---|---|---|---:|---:|---:|---:|---:|---:|\n";
             for c in &self.comparisons {
                 let per_seed: Vec<String> = c
                     .per_seed
@@ -711,7 +718,7 @@ impl AcrossSeeds {
                     .collect();
                 let p = c.pooled;
                 s += &format!(
-                    "| {} | {} | {} | {}/{} | {:.2} | {:.3} | {:.3} | {:+.1} pt | {:.2} |\n",
+                    "| {} | {} | {} | {}/{} | {:.2} | {:.3} | {:.3} | {:+.1} pt | {:.3} ({:.3}) |\n",
                     c.encoder,
                     c.condition,
                     per_seed.join("; "),
@@ -722,6 +729,7 @@ impl AcrossSeeds {
                     p.p_exact,
                     100.0 * c.mean_difference,
                     c.seed_sign_flip_p,
+                    sign_flip_floor(c.per_seed.len()),
                 );
             }
         }
@@ -853,6 +861,10 @@ mod tests {
         // Six seeds all one way: 2 of 64 patterns are as extreme, p = 0.031.
         let six = [0.1, 0.05, 0.2, 0.15, 0.1, 0.3];
         assert_eq!(seed_sign_flip_p(&six), 2.0 / 64.0);
+        // The floor is what all-one-way seeds give.
+        assert_eq!(sign_flip_floor(3), seed_sign_flip_p(&[0.1, 0.2, 0.3]));
+        assert_eq!(sign_flip_floor(6), seed_sign_flip_p(&six));
+        assert_eq!(sign_flip_floor(4), 0.125);
     }
 
     #[test]
