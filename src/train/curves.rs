@@ -112,9 +112,7 @@ impl RunMetrics {
             .and_then(|meta| meta["steps_done"].as_u64());
         Ok(metrics)
     }
-}
 
-impl RunMetrics {
     /// Stretches of steps with no log lines, as (last logged update, next logged update or the
     /// checkpoint's step count): where consecutive update lines, or the last one and the
     /// checkpoint, are more than twice the run's logging interval (its smallest spacing) apart.
@@ -124,7 +122,7 @@ impl RunMetrics {
         let steps: Vec<u64> = self.updates.iter().map(|u| u.0).collect();
         let Some(interval) = steps
             .windows(2)
-            .map(|w| w[1] - w[0])
+            .map(|w| w[1].saturating_sub(w[0]))
             .filter(|&d| d > 0)
             .min()
         else {
