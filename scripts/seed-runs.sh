@@ -14,7 +14,10 @@
 #   scripts/seed-runs.sh stop     # Ctrl-C each trainer (it saves a checkpoint), stop the lanes
 #   scripts/seed-runs.sh pause|cont   # SIGSTOP/SIGCONT the trainers (for benchmarks)
 #
-# Runs live in checkpoints/seeds/<model>-s<seed>; commit everything there but replay.bin.
+# Runs live in checkpoints/seeds/<model>-s<seed>; commit everything there but replay.bin. While
+# lanes run, leave the run folders' files to the trainers: no `git stash`, checkout or commit -a
+# (a stash once replaced metrics.jsonl under two trainers; docs/training.md). Commit run state
+# with `stop`, `git add checkpoints/...`, commit, `start`.
 set -euo pipefail
 
 root=$(cd "$(dirname "$0")/.." && pwd)
