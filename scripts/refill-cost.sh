@@ -101,7 +101,7 @@ case "${1:-}" in
       bin="${GAITSCOPE_BIN:-${CARGO_TARGET_DIR}/release/gaitscope}"
       [ -x "$bin" ] || (cd "$root" && ${CARGO:-cargo} build --release --quiet)
       "$bin" eval --checkpoint "${pairs[@]}" --episodes "${EVAL_EPISODES:-100}" \
-        --out "$evaluated" >/dev/null
+        --out "$evaluated" >/dev/null 2>"$evaluated/eval.log" || { cat "$evaluated/eval.log" >&2; exit 1; }
     fi
     python3 - "$out" "$steps" "$last" "$evaluated" "${seeds[@]}" <<'EOF'
 import json, statistics, sys
