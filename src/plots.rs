@@ -136,7 +136,9 @@ pub fn error_bars(
     series: &[ErrorBarSeries],
     y_range: (f64, f64),
 ) -> Result<(), PlotError> {
-    render(path, (900, 560), |root| {
+    // At least ~9 px per point, so many runs over many categories stay apart.
+    let width = (120 + 9 * categories.len() * series.len()).max(900) as u32;
+    render(path, (width, 560), |root| {
         let n = series.len().max(1) as f64;
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 26))
