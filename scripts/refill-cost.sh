@@ -47,6 +47,9 @@ train() {
   return "$code"
 }
 
+# The whole command is one function, read before it runs: a lane keeps this script open for
+# hours, and bash would otherwise read an edited file from the old offset mid-run.
+main() {
 case "${1:-}" in
   run)
     core="${2:-1}"
@@ -198,3 +201,6 @@ EOF
     exit 2
     ;;
 esac
+}
+
+main "$@"; exit

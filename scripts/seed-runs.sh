@@ -104,6 +104,9 @@ trainer_pids() {
   done
 }
 
+# The whole command is one function, read before it runs: a lane keeps this script open for
+# hours, and bash would otherwise read an edited file from the old offset mid-run.
+main() {
 case "${1:-status}" in
   start)
     if [ -n "$(trainer_pids)" ]; then
@@ -146,3 +149,6 @@ case "${1:-status}" in
     ;;
   *) echo "usage: $0 start|status|stop|pause|cont" >&2; exit 2 ;;
 esac
+}
+
+main "$@"; exit
