@@ -305,8 +305,8 @@ fn eval_groups_seeds_and_pairs_them_by_training_seed() {
     assert_eq!(seeds.comparisons.len(), 2);
     for c in &seeds.comparisons {
         assert_eq!(
-            (c.baseline.as_str(), c.encoder.as_str()),
-            ("baseline", "encoder")
+            (c.model.as_str(), c.reference.as_str()),
+            ("encoder", "baseline")
         );
         let paired: Vec<u64> = c.per_seed.iter().map(|(s, _)| *s).collect();
         assert_eq!(paired, [1, 2]);

@@ -353,17 +353,20 @@ pub struct GroupCell {
     pub success_after_damage: Interval,
 }
 
-/// An encoder group against the baseline group under one condition, on success@500, each
-/// encoder run paired with the baseline run of its training seed on the same eval seeds.
+/// A model group against a reference group under one condition, on success@500, each run of
+/// the model paired with the reference's run of its training seed on the same eval seeds. The
+/// reference is the baseline for every encoder, and for two encoders the later-listed one (as in
+/// [`Improvement`]: `encoder-lstm` against `encoder-mlp`, `encoder-lstm` against
+/// `encoder-lstm-aux`).
 #[derive(Debug, Clone, Serialize)]
 pub struct GroupComparison {
-    pub baseline: String,
-    pub encoder: String,
+    pub model: String,
+    pub reference: String,
     pub condition: Case,
-    /// (training seed, McNemar: b = baseline only, c = encoder only).
+    /// (training seed, McNemar: b = reference only, c = model only).
     pub per_seed: Vec<(u64, McNemar)>,
     pub pooled: McNemar,
-    /// Mean over paired seeds of (encoder − baseline) success rate.
+    /// Mean over paired seeds of (model − reference) success rate.
     pub mean_difference: f64,
     pub seed_sign_flip_p: f64,
 }
@@ -492,12 +495,66 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
         }
     }
 
+    // Each run of `model` against the run of `reference` with its training seed, per condition.
+    let compare = |(model, model_runs): (&str, &[(u64, String)]),
+                   (reference, reference_runs): (&str, &[(u64, String)])| {
+        let paired: Vec<(u64, &String, &String)> = model_runs
+            .iter()
+            .filter_map(|(seed, m)| {
+                reference_runs
+                    .iter()
+                    .find(|(s, _)| s == seed)
+                    .map(|(_, r)| (*seed, r, m))
+            })
+            .collect();
+        let mut out = Vec::new();
+        for &condition in conditions {
+            let mut per_seed = Vec::new();
+            let mut differences = Vec::new();
+            for &(seed, ref_run, model_run) in &paired {
+                let (r, m) = (
+                    run_episodes(ref_run, condition),
+                    run_episodes(model_run, condition),
+                );
+                let pairs: Vec<(bool, bool)> = r
+                    .iter()
+                    .zip(&m)
+                    .filter(|(x, y)| x.seed == y.seed)
+                    .map(|(x, y)| (x.success_within(500), y.success_within(500)))
+                    .collect();
+                let n = pairs.len().max(1) as f64;
+                let diff = pairs.iter().map(|&(x, y)| y as i32 - x as i32).sum::<i32>();
+                differences.push(f64::from(diff) / n);
+                per_seed.push((seed, super::stats::mcnemar(pairs)));
+            }
+            let tables: Vec<McNemar> = per_seed.iter().map(|(_, m)| *m).collect();
+            out.push(GroupComparison {
+                model: model.to_string(),
+                reference: reference.to_string(),
+                condition,
+                pooled: pooled_mcnemar(&tables),
+                mean_difference: if differences.is_empty() {
+                    f64::NAN
+                } else {
+                    differences.iter().sum::<f64>() / differences.len() as f64
+                },
+                seed_sign_flip_p: seed_sign_flip_p(&differences),
+                per_seed,
+            });
+        }
+        out
+    };
+    let encoder_groups: Vec<&Group> = groups
+        .iter()
+        .filter(|(_, k, _)| *k != EncoderKind::None)
+        .collect();
     let mut comparisons = Vec::new();
     let mut recovery = Vec::new();
     let baseline = groups.iter().find(|(_, k, _)| *k == EncoderKind::None);
     if let Some((base, _, base_runs)) = baseline {
         let cell = |g: &str, c: Case| cells.iter().find(|x| x.group == g && x.condition == c);
-        for (group, _, runs) in groups.iter().filter(|(_, k, _)| *k != EncoderKind::None) {
+        for (group, _, runs) in encoder_groups.iter().copied() {
+            comparisons.extend(compare((group, runs), (base, base_runs)));
             let paired: Vec<(u64, &String, &String)> = runs
                 .iter()
                 .filter_map(|(seed, model)| {
@@ -507,40 +564,6 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                         .map(|(_, b)| (*seed, b, model))
                 })
                 .collect();
-            for &condition in conditions {
-                let mut per_seed = Vec::new();
-                let mut differences = Vec::new();
-                for &(seed, base_model, enc_model) in &paired {
-                    let (b, e) = (
-                        run_episodes(base_model, condition),
-                        run_episodes(enc_model, condition),
-                    );
-                    let pairs: Vec<(bool, bool)> = b
-                        .iter()
-                        .zip(&e)
-                        .filter(|(x, y)| x.seed == y.seed)
-                        .map(|(x, y)| (x.success_within(500), y.success_within(500)))
-                        .collect();
-                    let n = pairs.len().max(1) as f64;
-                    let diff = pairs.iter().map(|&(x, y)| y as i32 - x as i32).sum::<i32>();
-                    differences.push(f64::from(diff) / n);
-                    per_seed.push((seed, super::stats::mcnemar(pairs)));
-                }
-                let tables: Vec<McNemar> = per_seed.iter().map(|(_, m)| *m).collect();
-                comparisons.push(GroupComparison {
-                    baseline: base.clone(),
-                    encoder: group.clone(),
-                    condition,
-                    pooled: pooled_mcnemar(&tables),
-                    mean_difference: if differences.is_empty() {
-                        f64::NAN
-                    } else {
-                        differences.iter().sum::<f64>() / differences.len() as f64
-                    },
-                    seed_sign_flip_p: seed_sign_flip_p(&differences),
-                    per_seed,
-                });
-            }
             let rate = |model: &str, c: Case| {
                 let eps = run_episodes(model, c);
                 (!eps.is_empty()).then(|| success_rate(&eps, 500).rate)
@@ -576,6 +599,11 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                     of_means: rf(es, bs, bh),
                 });
             }
+        }
+    }
+    for (i, (a, _, a_runs)) in encoder_groups.iter().enumerate() {
+        for (b, _, b_runs) in &encoder_groups[i + 1..] {
+            comparisons.extend(compare((a, a_runs), (b, b_runs)));
         }
     }
     // Encoders against the baseline first, then each pair of encoders (in evaluation order).
@@ -702,14 +730,16 @@ impl AcrossSeeds {
             );
         }
         if !self.comparisons.is_empty() {
-            s += "\n**Encoder vs baseline, paired by training seed** (success@500 on the same eval \
-                  seeds; b = baseline only, c = encoder only; pooled: Cochran–Mantel–Haenszel with \
+            s += "\n**Paired by training seed**: each encoder against the baseline, and each \
+                  pair of encoders (success@500 on the same eval seeds; b = reference only, c = \
+                  model only; mean Δ = model − reference; pooled: Cochran–Mantel–Haenszel with \
                   pairs as strata, i.e. McNemar on the summed discordant pairs, and its exact sign \
                   test; seed sign-flip: the paired permutation test over seeds' mean differences, \
                   two-sided; with n paired seeds it cannot go below 2/2ⁿ, its floor: 0.25 with \
                   three seeds, 0.031 with six)\n\n\
-                  | encoder | condition | per seed b/c (exact p) | pooled b/c | χ² | p (χ²) | p (exact) \
-                  | mean Δ | seed sign-flip p (floor) |\n|---|---|---|---:|---:|---:|---:|---:|---:|\n";
+                  | model | reference | condition | per seed b/c (exact p) | pooled b/c | χ² | \
+                  p (χ²) | p (exact) | mean Δ | seed sign-flip p (floor) |\n\
+                  |---|---|---|---|---:|---:|---:|---:|---:|---:|\n";
             for c in &self.comparisons {
                 let per_seed: Vec<String> = c
                     .per_seed
@@ -718,8 +748,9 @@ impl AcrossSeeds {
                     .collect();
                 let p = c.pooled;
                 s += &format!(
-                    "| {} | {} | {} | {}/{} | {:.2} | {:.3} | {:.3} | {:+.1} pt | {:.3} ({:.3}) |\n",
-                    c.encoder,
+                    "| {} | {} | {} | {} | {}/{} | {:.2} | {:.3} | {:.3} | {:+.1} pt | {:.3} ({:.3}) |\n",
+                    c.model,
+                    c.reference,
                     c.condition,
                     per_seed.join("; "),
                     p.b,
@@ -1028,14 +1059,32 @@ mod tests {
             run("baseline", EncoderKind::None, 0, &[t, f, f, f]),
             run("enc", EncoderKind::Lstm, 0, &[t, t, f, f]),
             run("baseline-s1", EncoderKind::None, 1, &[f, f, t, t]),
+            run("aux", EncoderKind::Lstm, 0, &[f, t, t, f]),
+            run("aux-s1", EncoderKind::Lstm, 1, &[f, f, t, t]),
         ]
         .concat();
         let report = across_seeds(&episodes, &[Case::Condition(Condition::Severe)]);
-        let cmp = &report.comparisons[0];
+        // Each encoder against the baseline, then the two encoders (the later one the reference).
+        let pairs: Vec<(&str, &str)> = report
+            .comparisons
+            .iter()
+            .map(|c| (c.model.as_str(), c.reference.as_str()))
+            .collect();
         assert_eq!(
-            (cmp.baseline.as_str(), cmp.encoder.as_str()),
-            ("baseline", "enc")
+            pairs,
+            [("enc", "baseline"), ("aux", "baseline"), ("enc", "aux")]
         );
+        // enc against aux. Seed 0: aux F T T F vs enc T T F F → b = 1, c = 1, Δ = 0. Seed 1:
+        // F F T T vs T T T F → b = 1, c = 2, Δ = ¼.
+        let encoders = &report.comparisons[2];
+        let counts: Vec<(u64, usize, usize)> = encoders
+            .per_seed
+            .iter()
+            .map(|(s, m)| (*s, m.b, m.c))
+            .collect();
+        assert_eq!(counts, [(0, 1, 1), (1, 1, 2)]);
+        assert!((encoders.mean_difference - 0.125).abs() < 1e-12);
+        let cmp = &report.comparisons[0];
         // Seed 0: baseline T F F F vs enc T T F F → b = 0, c = 1. Seed 1: F F T T vs T T T F →
         // b = 1, c = 2. Pooled 1/3; mean Δ = (¼ + ¼)/2.
         let counts: Vec<(u64, usize, usize)> =
