@@ -292,6 +292,21 @@ fn eval_groups_seeds_and_pairs_them_by_training_seed() {
     })
     .collect();
     let report = evaluate(&options(dirs, 2)).unwrap();
+    // Per run too, each encoder run meets the baseline run of its own training seed.
+    let per_run: Vec<(&str, &str)> = report
+        .comparisons
+        .iter()
+        .map(|c| (c.encoder.as_str(), c.baseline.as_str()))
+        .collect();
+    assert_eq!(
+        per_run,
+        [
+            ("encoder-s2", "baseline-s2"),
+            ("encoder-s2", "baseline-s2"),
+            ("encoder", "baseline"),
+            ("encoder", "baseline"),
+        ]
+    );
     let seeds = &report.across_seeds;
     // 2 groups × 2 conditions, each with both seeds in training-seed order.
     assert_eq!(seeds.groups.len(), 4);

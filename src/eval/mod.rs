@@ -480,20 +480,36 @@ fn summarize(
             });
         }
     }
-    let baseline = models
+    // Each encoder run against the baseline run of its own training seed (seed s against seed
+    // s, as across seeds), or the first baseline run when none has that seed.
+    let train_seed = |model: &str| {
+        episodes
+            .iter()
+            .find(|e| e.model == model)
+            .map(|e| e.train_seed)
+    };
+    let baselines: Vec<&String> = models
         .iter()
-        .find(|(_, k)| *k == EncoderKind::None)
-        .map(|(m, _)| m.clone());
+        .filter(|(_, k)| *k == EncoderKind::None)
+        .map(|(m, _)| m)
+        .collect();
+    let baseline_for = |model: &str| {
+        baselines
+            .iter()
+            .find(|b| train_seed(b) == train_seed(model))
+            .or(baselines.first())
+            .map(|b| b.as_str())
+    };
     let mut comparisons = Vec::new();
     let mut rf = BTreeMap::new();
-    if let Some(base) = &baseline {
-        let rate = |model: &str, c: Case| {
-            cells
-                .iter()
-                .find(|x| x.model == model && x.condition == c)
-                .map(|x| x.success[&500].rate)
-        };
-        for (model, _) in models.iter().filter(|(_, k)| *k != EncoderKind::None) {
+    let rate = |model: &str, c: Case| {
+        cells
+            .iter()
+            .find(|x| x.model == model && x.condition == c)
+            .map(|x| x.success[&500].rate)
+    };
+    for (model, _) in models.iter().filter(|(_, k)| *k != EncoderKind::None) {
+        if let Some(base) = baseline_for(model) {
             for &condition in &opts.conditions {
                 let (b, e) = (cell(base, condition), cell(model, condition));
                 let pairs = b
@@ -501,7 +517,7 @@ fn summarize(
                     .zip(&e)
                     .map(|(x, y)| (x.success_within(500), y.success_within(500)));
                 comparisons.push(Comparison {
-                    baseline: base.clone(),
+                    baseline: base.to_string(),
                     encoder: model.clone(),
                     condition,
                     mcnemar: mcnemar(pairs),
@@ -603,15 +619,23 @@ impl EvalReport {
             }
         }
         if !self.comparisons.is_empty() {
-            s += "\n**Encoder vs baseline** (McNemar on paired success@500; b = baseline only, c = encoder only)\n\n| encoder | condition | b | c | χ² | p (χ²) | p (exact) |\n|---|---|---:|---:|---:|---:|---:|\n";
+            s += "\n**Encoder vs baseline, per run** (McNemar on paired success@500; each encoder run \
+                  against the baseline run of its training seed; b = baseline only, c = encoder \
+                  only)\n\n| encoder | baseline | condition | b | c | χ² | p (χ²) | p (exact) |\n\
+                  |---|---|---|---:|---:|---:|---:|---:|\n";
             for cmp in &self.comparisons {
                 let m = cmp.mcnemar;
                 s += &format!(
-                    "| {} | {} | {} | {} | {:.2} | {:.3} | {:.3} |\n",
-                    cmp.encoder, cmp.condition, m.b, m.c, m.chi2, m.p_chi2, m.p_exact
+                    "| {} | {} | {} | {} | {} | {:.2} | {:.3} | {:.3} |\n",
+                    cmp.encoder, cmp.baseline, cmp.condition, m.b, m.c, m.chi2, m.p_chi2, m.p_exact
                 );
             }
             for (model, rf) in &self.recovery_fraction {
+                let baseline = self
+                    .comparisons
+                    .iter()
+                    .find(|c| c.encoder == *model)
+                    .map_or("the baseline", |c| c.baseline.as_str());
                 let pct = |r: f64| format!("{:.0} %", 100.0 * r);
                 let (es, bs, bh) = (
                     pct(rf.encoder_severe),
@@ -620,12 +644,14 @@ impl EvalReport {
                 );
                 s += &match rf.value {
                     Some(v) => format!(
-                        "\nRecovery fraction of {model}: {v:.2} = (encoder severe {es} − baseline \
-                         severe {bs}) / (baseline healthy {bh} − baseline severe {bs})\n"
+                        "\nRecovery fraction of {model} (against {baseline}): {v:.2} = (encoder \
+                         severe {es} − baseline severe {bs}) / (baseline healthy {bh} − baseline \
+                         severe {bs})\n"
                     ),
                     None => format!(
-                        "\nRecovery fraction of {model}: undefined, the baseline loses nothing under \
-                         severe damage (healthy {bh}, severe {bs}; encoder severe {es})\n"
+                        "\nRecovery fraction of {model} (against {baseline}): undefined, the \
+                         baseline loses nothing under severe damage (healthy {bh}, severe {bs}; \
+                         encoder severe {es})\n"
                     ),
                 };
             }
@@ -918,7 +944,7 @@ mod tests {
         })
         .markdown();
         assert!(
-            md.contains("Recovery fraction of encoder: 1.23 = (encoder severe 86 % − baseline severe 70 %) / (baseline healthy 83 % − baseline severe 70 %)"),
+            md.contains("Recovery fraction of encoder (against baseline): 1.23 = (encoder severe 86 % − baseline severe 70 %) / (baseline healthy 83 % − baseline severe 70 %)"),
             "{md}"
         );
         // A baseline that gains under severe damage leaves nothing to recover.
