@@ -3,11 +3,11 @@
 //! Each figure is drawn to a temporary file and renamed into place.
 
 use plotters::prelude::*;
+use std::path::{Path, PathBuf};
+use std::sync::Once;
 
 /// Where a figure's legend goes (plotters' type, re-exported for the figures' callers).
 pub use plotters::chart::SeriesLabelPosition;
-use std::path::{Path, PathBuf};
-use std::sync::Once;
 
 #[derive(Debug, thiserror::Error)]
 pub enum PlotError {
