@@ -1214,10 +1214,7 @@ impl MetricsLog {
             source: e.into(),
         })?;
         self.line.push(b'\n');
-        let line = std::mem::take(&mut self.line);
-        let written = self.append(&line);
-        self.line = line;
-        written
+        self.append(&self.line)
     }
 
     /// One `write` call per line, so a line is never split between two files.
