@@ -401,7 +401,24 @@ pub struct AcrossSeeds {
     pub improvements: Vec<Improvement>,
 }
 
-/// Groups the episodes by model and compares each encoder group with the baseline group.
+/// The runs of two groups with a training seed in common: (seed, reference run, model run).
+fn paired_by_seed<'a>(
+    model_runs: &'a [(u64, String)],
+    reference_runs: &'a [(u64, String)],
+) -> Vec<(u64, &'a String, &'a String)> {
+    model_runs
+        .iter()
+        .filter_map(|(seed, m)| {
+            reference_runs
+                .iter()
+                .find(|(s, _)| s == seed)
+                .map(|(_, r)| (*seed, r, m))
+        })
+        .collect()
+}
+
+/// Groups the episodes by model and compares each encoder group with the baseline group and
+/// with each other encoder group.
 pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSeeds {
     // Groups and their runs in the order they were evaluated; runs (training seed, label)
     // sorted by training seed.
@@ -498,15 +515,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
     // Each run of `model` against the run of `reference` with its training seed, per condition.
     let compare = |(model, model_runs): (&str, &[(u64, String)]),
                    (reference, reference_runs): (&str, &[(u64, String)])| {
-        let paired: Vec<(u64, &String, &String)> = model_runs
-            .iter()
-            .filter_map(|(seed, m)| {
-                reference_runs
-                    .iter()
-                    .find(|(s, _)| s == seed)
-                    .map(|(_, r)| (*seed, r, m))
-            })
-            .collect();
+        let paired = paired_by_seed(model_runs, reference_runs);
         let mut out = Vec::new();
         for &condition in conditions {
             let mut per_seed = Vec::new();
@@ -555,15 +564,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
         let cell = |g: &str, c: Case| cells.iter().find(|x| x.group == g && x.condition == c);
         for (group, _, runs) in encoder_groups.iter().copied() {
             comparisons.extend(compare((group, runs), (base, base_runs)));
-            let paired: Vec<(u64, &String, &String)> = runs
-                .iter()
-                .filter_map(|(seed, model)| {
-                    base_runs
-                        .iter()
-                        .find(|(s, _)| s == seed)
-                        .map(|(_, b)| (*seed, b, model))
-                })
-                .collect();
+            let paired = paired_by_seed(runs, base_runs);
             let rate = |model: &str, c: Case| {
                 let eps = run_episodes(model, c);
                 (!eps.is_empty()).then(|| success_rate(&eps, 500).rate)
