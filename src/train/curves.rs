@@ -1,5 +1,6 @@
 //! Training curves from `metrics.jsonl` (the paper's Figure 3): return, success rate, critic and
-//! actor loss, α, and triggered joints per episode, for one or more runs.
+//! actor loss, α, and triggered joints per episode, for one or more runs; with `train --aux`, the
+//! auxiliary dynamics loss of each encoder too.
 
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -29,6 +30,10 @@ struct MetricsLine {
     actor_loss: Option<f64>,
     #[serde(rename = "losses/alpha")]
     alpha: Option<f64>,
+    #[serde(rename = "losses/aux")]
+    aux: Option<f64>,
+    #[serde(rename = "losses/aux_critic")]
+    aux_critic: Option<f64>,
 }
 
 /// A run's metrics, by env step.
@@ -38,6 +43,9 @@ pub struct RunMetrics {
     pub episodes: Vec<(u64, f64, bool, f64)>,
     /// (step, mean critic loss, actor loss, α) per logged update.
     pub updates: Vec<(u64, f64, f64, f64)>,
+    /// (step, the actor's encoder's auxiliary loss, the critic's) per logged update of a run
+    /// trained with `--aux` (unweighted; NaN where a network has no encoder of its own).
+    pub aux: Vec<(u64, f64, f64)>,
     /// The steps its checkpoint (`checkpoint.json` beside the metrics) says were trained, if
     /// there is one: a log that stops well before it lost its tail.
     pub steps_done: Option<u64>,
@@ -91,6 +99,7 @@ impl RunMetrics {
             // that point belongs to the abandoned continuation.
             metrics.episodes.retain(|e| e.0 <= step);
             metrics.updates.retain(|u| u.0 <= step);
+            metrics.aux.retain(|u| u.0 <= step);
             if let (Some(r), Some(s)) = (parsed.episodic_return, parsed.success) {
                 let triggered = parsed.triggered_joints.unwrap_or(f64::NAN);
                 metrics.episodes.push((step, r, s, triggered));
@@ -99,6 +108,12 @@ impl RunMetrics {
                 (parsed.qf1, parsed.qf2, parsed.actor_loss, parsed.alpha)
             {
                 metrics.updates.push((step, 0.5 * (q1 + q2), a, alpha));
+            }
+            if parsed.aux.is_some() || parsed.aux_critic.is_some() {
+                let or_nan = |v: Option<f64>| v.unwrap_or(f64::NAN);
+                metrics
+                    .aux
+                    .push((step, or_nan(parsed.aux), or_nan(parsed.aux_critic)));
             }
         }
         if metrics.episodes.is_empty() {
@@ -206,7 +221,7 @@ struct Curve {
 /// Points on which a group's mean over seeds is drawn.
 const MEAN_POINTS: usize = 250;
 
-/// Draws the six panels for `runs` into `out`: a run alone in its group as one line; a group
+/// Draws the panels for `runs` into `out`: a run alone in its group as one line; a group
 /// of several runs (training seeds of one model) as a thin pale line per seed under a bold
 /// line of their mean, drawn where every seed has logged.
 pub fn figure(runs: &[CurveRun], out: &Path) -> Result<(), CurvesError> {
@@ -233,7 +248,8 @@ fn update_line(m: &RunMetrics, value: fn(&(u64, f64, f64, f64)) -> f64) -> Vec<(
     m.updates.iter().map(|u| (u.0 as f64, value(u))).collect()
 }
 
-/// The six panels: return, success, critic loss, actor loss, α, triggered joints.
+/// The panels: return, success, critic loss, actor loss, α, triggered joints; then, where some
+/// run trained with `--aux`, its encoders' auxiliary losses (only the runs that have them).
 fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
     let mut groups: Vec<(&str, Vec<&CurveRun>)> = Vec::new();
     for run in runs {
@@ -290,7 +306,7 @@ fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
             y_range: None,
             legend: None,
         };
-    vec![
+    let mut panels = vec![
         LinePanel {
             legend: Some(SeriesLabelPosition::LowerRight),
             ..panel(
@@ -320,7 +336,23 @@ fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
             "joints",
             &|m| episode_line(m, |e| e.3),
         ),
-    ]
+    ];
+    if runs.iter().any(|r| !r.metrics.aux.is_empty()) {
+        let aux_panel = |whose: &str, value: fn(&(u64, f64, f64)) -> f64| {
+            let mut panel = panel(
+                format!("Auxiliary dynamics loss, {whose} encoder"),
+                "MSE of the normalised Δobs",
+                &|m| m.aux.iter().map(|u| (u.0 as f64, value(u))).collect(),
+            );
+            panel.lines.retain(|l| !l.points.is_empty());
+            // A legend here: these two panels show a subset of the models.
+            panel.legend = Some(SeriesLabelPosition::UpperRight);
+            panel
+        };
+        panels.push(aux_panel("the actor's", |u| u.1));
+        panels.push(aux_panel("the critic's", |u| u.2));
+    }
+    panels
 }
 
 /// The mean over runs of each run's latest value at or before x, on [`MEAN_POINTS`] evenly
@@ -429,7 +461,7 @@ mod tests {
             metrics: RunMetrics {
                 episodes: vec![(1000, 1.0, true, 8.0)],
                 updates: alpha.iter().map(|&(s, a)| (s, 0.0, 0.0, a)).collect(),
-                steps_done: None,
+                ..RunMetrics::default()
             },
         };
         let seed0: Vec<(u64, f64)> = (1..=6).map(|k| (1000 * k, k as f64)).collect();
@@ -489,9 +521,79 @@ mod tests {
         // The seed with the gap is broken there, the other is whole.
         assert!(alpha.lines[1].points.iter().any(|p| p.1.is_nan()));
         assert!(alpha.lines[0].points.iter().all(|p| p.1.is_finite()));
-        // Only the first row has legends.
+        // Only the first row has legends; no run trained with --aux, so no aux panels.
         let legends: Vec<bool> = panels.iter().map(|p| p.legend.is_some()).collect();
         assert_eq!(legends, [true, true, false, false, false, false]);
+    }
+
+    #[test]
+    fn aux_losses_get_two_panels_of_the_runs_that_have_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let write = |group: &str, name: &str, lines: &[&str]| {
+            let run = dir.path().join(name);
+            std::fs::create_dir_all(&run).unwrap();
+            std::fs::write(run.join("metrics.jsonl"), lines.join("\n") + "\n").unwrap();
+            CurveRun {
+                group: group.into(),
+                label: name.into(),
+                metrics: RunMetrics::read(&run).unwrap(),
+            }
+        };
+        let episode = r#"{"global_step":500,"charts/episodic_return":1.0,"charts/success":false}"#;
+        let update = |step: u64, aux: &str| {
+            format!(
+                r#"{{"global_step":{step},"losses/qf1":1,"losses/qf2":1,"losses/actor_loss":0,"losses/alpha":0.2{aux}}}"#
+            )
+        };
+        let aux_run = |name: &str, a: [f64; 2], c: [f64; 2]| {
+            let u0 = update(
+                1000,
+                &format!(r#","losses/aux":{},"losses/aux_critic":{}"#, a[0], c[0]),
+            );
+            let u1 = update(
+                2000,
+                &format!(r#","losses/aux":{},"losses/aux_critic":{}"#, a[1], c[1]),
+            );
+            write("encoder-lstm-aux", name, &[episode, &u0, &u1])
+        };
+        let runs = [
+            write(
+                "baseline",
+                "baseline",
+                &[episode, &update(1000, ""), &update(2000, "")],
+            ),
+            aux_run("encoder-lstm-aux-s0", [1.0, 0.5], [2.0, 1.0]),
+            aux_run("encoder-lstm-aux-s1", [3.0, 0.7], [4.0, 2.0]),
+        ];
+        assert!(runs[0].metrics.aux.is_empty());
+        assert_eq!(
+            runs[1].metrics.aux,
+            vec![(1000, 1.0, 2.0), (2000, 0.5, 1.0)]
+        );
+        let panels = panels(&runs);
+        assert_eq!(panels.len(), 8);
+        let actor = &panels[6];
+        let critic = &panels[7];
+        assert_eq!(actor.title, "Auxiliary dynamics loss, the actor's encoder");
+        assert_eq!(
+            critic.title,
+            "Auxiliary dynamics loss, the critic's encoder"
+        );
+        // Only the aux model: two faint seeds and their bold mean, in the aux colour (slot 3),
+        // with a legend (a subset of the figure's models).
+        for (panel, first, last) in [(actor, 2.0, 0.6), (critic, 3.0, 1.5)] {
+            let names: Vec<(&str, bool, usize)> = panel
+                .lines
+                .iter()
+                .map(|l| (l.name.as_str(), l.faint, l.colour))
+                .collect();
+            let name = "encoder-lstm-aux (mean of 2 seeds)";
+            assert_eq!(names, [(name, true, 3), (name, true, 3), (name, false, 3)]);
+            let mean = &panel.lines[2].points;
+            assert_eq!(mean.first().unwrap().1, first);
+            assert!((mean.last().unwrap().1 - last).abs() < 1e-12);
+            assert!(panel.legend.is_some());
+        }
     }
 
     #[test]
