@@ -127,7 +127,24 @@ pub struct ErrorBarSeries {
     pub dots: Vec<Vec<f64>>,
 }
 
-/// Points with error bars, grouped by category, side by side within each in series order.
+/// Room above the data for the legend, as a fraction of the data's range.
+const LEGEND_HEADROOM: f64 = 0.3;
+
+/// A y tick's label: none above the data's top (the legend's headroom is not a value), whole
+/// numbers on a range of 20 or more (percentages, steps), one decimal below that.
+fn y_tick_label(value: f64, (bottom, top): (f64, f64)) -> String {
+    let eps = 1e-9 * (top - bottom).abs().max(1.0);
+    if value > top + eps {
+        String::new()
+    } else if top - bottom >= 20.0 {
+        format!("{value:.0}")
+    } else {
+        format!("{value:.1}")
+    }
+}
+
+/// Points with error bars, grouped by category, side by side within each in series order, on
+/// `y_range` (the values' range: the chart adds room above it for the legend).
 pub fn error_bars(
     path: &Path,
     title: &str,
@@ -136,6 +153,7 @@ pub fn error_bars(
     series: &[ErrorBarSeries],
     y_range: (f64, f64),
 ) -> Result<(), PlotError> {
+    let y_top = y_range.1 + LEGEND_HEADROOM * (y_range.1 - y_range.0);
     // At least ~9 px per point, so many runs over many categories stay apart.
     let width = (120 + 9 * categories.len() * series.len()).max(900) as u32;
     render(path, (width, 560), |root| {
@@ -145,10 +163,11 @@ pub fn error_bars(
             .margin(16)
             .x_label_area_size(40)
             .y_label_area_size(60)
-            .build_cartesian_2d(-0.5f64..categories.len() as f64 - 0.5, y_range.0..y_range.1)?;
+            .build_cartesian_2d(-0.5f64..categories.len() as f64 - 0.5, y_range.0..y_top)?;
         chart
             .configure_mesh()
             .y_desc(y_label)
+            .y_label_formatter(&|y| y_tick_label(*y, y_range))
             .x_labels(categories.len())
             .x_label_formatter(&|x| {
                 let i = x.round() as i64;
@@ -563,6 +582,19 @@ fn thousands(x: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn y_ticks_are_labelled_only_over_the_data() {
+        // A success axis: 0…100 %, the legend's headroom above 100 unlabelled.
+        let pct = (0.0, 100.0);
+        assert_eq!(y_tick_label(0.0, pct), "0");
+        assert_eq!(y_tick_label(100.0, pct), "100");
+        assert_eq!(y_tick_label(100.0 + 1e-12, pct), "100");
+        assert_eq!(y_tick_label(120.0, pct), "");
+        // A distance axis of a few metres keeps a decimal.
+        assert_eq!(y_tick_label(2.5, (0.0, 5.2)), "2.5");
+        assert_eq!(y_tick_label(5.5, (0.0, 5.2)), "");
+    }
 
     #[test]
     fn a_non_finite_y_breaks_a_line() {

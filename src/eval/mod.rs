@@ -753,8 +753,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         "success (%)",
         &names,
         &success,
-        // Headroom above 100 % keeps the legend off the data.
-        (0.0, 125.0),
+        (0.0, 100.0),
     )?;
     let distance: Vec<ErrorBarSeries> = models
         .iter()
@@ -795,7 +794,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
         "distance (m)",
         &names,
         &distance,
-        (0.0, max_d * 1.35),
+        (0.0, max_d * 1.05),
     )?;
     let mut written = vec![json_path, success_path, distance_path];
     if report.across_seeds.has_several_seeds() {
@@ -866,8 +865,7 @@ fn across_seeds_figures(
         "success (%)",
         &names,
         &series,
-        // Headroom above 100 % keeps the legend off the data.
-        (0.0, 125.0),
+        (0.0, 100.0),
     )?;
     let bars: Vec<plots::StackedBar> = groups
         .iter()

@@ -256,7 +256,7 @@ pub fn figures(
             dots: Vec::new(),
             points,
         }],
-        (0.0, max * 1.3),
+        (0.0, max * 1.05),
     )?;
     written.push(path);
     Ok(written)
