@@ -28,7 +28,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run episodes with a built-in policy, or replay an action sequence from a given state.
+    /// Run episodes of a checkpoint or a built-in policy as JSON lines, or replay an action sequence.
     Rollout(RolloutArgs),
     /// Train a SAC policy (optionally with a context encoder) on the damaged Ant.
     Train(TrainArgs),
@@ -38,13 +38,13 @@ enum Command {
     Live(LiveArgs),
     /// Open a recording (.rrd) in the Rerun viewer to scrub it.
     View(ViewArgs),
-    /// Evaluate checkpoints under each damage condition (paired seeds, Wilson intervals, McNemar).
+    /// Evaluate checkpoints under each damage condition or scenario: paired episodes, tests across training seeds.
     Eval(EvalArgs),
     /// Linear probes and PCA on an encoder's z; saves probe.json next to the checkpoint.
     Probe(ProbeArgs),
     /// Which past steps drive z (or the action) at one step: integrated gradients over the window.
     Explain(ExplainArgs),
-    /// Training curves (return, success, losses, α, triggers) from runs' metrics.jsonl, as a PNG.
+    /// Training curves (return, success, losses, α, triggers, aux losses) from metrics.jsonl, as a PNG.
     Curves(CurvesArgs),
     /// Render an episode to MP4 with MuJoCo's renderer (cargo feature `video`; needs ffmpeg).
     Video(VideoArgs),
