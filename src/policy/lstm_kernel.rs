@@ -10,6 +10,7 @@
 use candle_core::{CpuStorage, CustomOp2, Layout, Result, Shape, Tensor, bail};
 
 use super::gemm::matmul;
+use super::simd::vectorised;
 
 /// Gate order (PyTorch's): input, forget, cell, output.
 #[derive(Debug, Clone, Copy)]
@@ -23,7 +24,8 @@ pub fn lstm_recurrence(projected: &Tensor, w_hh: &Tensor) -> Result<Tensor> {
 }
 
 /// exp(x) as 2ⁿ·p(r), r = x − n·ln 2, with Cephes' expf polynomial (relative error ~1e-7).
-/// Unlike libm's `expf` it inlines, so the gate loops below vectorise.
+/// Unlike libm's `expf` it inlines, so the gate loops below vectorise (16 or 8 lanes wide,
+/// [`super::simd`]).
 #[inline(always)]
 fn exp(x: f32) -> f32 {
     let x = x.clamp(-87.0, 88.0);
@@ -65,7 +67,7 @@ pub(crate) fn tanh(x: f32) -> f32 {
 fn cell_forward_row(gates: &mut [f32], c_prev: &[f32], c_next: &mut [f32], h_next: &mut [f32]) {
     let h = c_prev.len();
     // Every slice re-cut to exactly H (or 4H): the compiler then drops the bounds checks and
-    // vectorises the loop 8 wide.
+    // vectorises the loop.
     let (gi, rest) = gates[..4 * h].split_at_mut(h);
     let (gf, rest) = rest.split_at_mut(h);
     let (gg, go) = rest.split_at_mut(h);
@@ -112,107 +114,53 @@ fn cell_backward_row(
     }
 }
 
-/// All rows of one step: (B, 4H) gates in place, (B, H) states.
-#[inline(always)]
-fn cells_forward(
-    gates: &mut [f32],
-    c_prev: &[f32],
-    c_next: &mut [f32],
-    h_next: &mut [f32],
-    h: usize,
-) {
-    for (r, g) in gates.chunks_exact_mut(4 * h).enumerate() {
-        let rows = r * h..(r + 1) * h;
-        cell_forward_row(
-            g,
-            &c_prev[rows.clone()],
-            &mut c_next[rows.clone()],
-            &mut h_next[rows],
-        );
-    }
-}
-
-#[inline(always)]
-fn cells_backward(
-    act: &[f32],
-    c_prev: &[f32],
-    c: &[f32],
-    d_h: &[f32],
-    d_c: &mut [f32],
-    d_gates: &mut [f32],
-    h: usize,
-) {
-    for (r, dg) in d_gates.chunks_exact_mut(4 * h).enumerate() {
-        let rows = r * h..(r + 1) * h;
-        let a = &act[r * 4 * h..(r + 1) * 4 * h];
-        cell_backward_row(
-            a,
-            &c_prev[rows.clone()],
-            &c[rows.clone()],
-            &d_h[rows.clone()],
-            &mut d_c[rows],
-            dg,
-        );
-    }
-}
-
-/// The gate loops compiled for AVX2 + FMA (8 lanes), used when the CPU has them.
-#[cfg(target_arch = "x86_64")]
-mod simd {
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn cells_forward(
-        g: &mut [f32],
-        cp: &[f32],
-        cn: &mut [f32],
-        hn: &mut [f32],
+vectorised! {
+    /// One time step's cell update for all rows: gates (B, 4H) hold the pre-activations and
+    /// become the activations; c_next and h_next are (B, H).
+    pub(crate) fn step_forward(
+        gates: &mut [f32],
+        c_prev: &[f32],
+        c_next: &mut [f32],
+        h_next: &mut [f32],
         h: usize,
     ) {
-        super::cells_forward(g, cp, cn, hn, h)
+        for (r, g) in gates.chunks_exact_mut(4 * h).enumerate() {
+            let rows = r * h..(r + 1) * h;
+            cell_forward_row(
+                g,
+                &c_prev[rows.clone()],
+                &mut c_next[rows.clone()],
+                &mut h_next[rows],
+            );
+        }
     }
-    #[target_feature(enable = "avx2,fma")]
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn cells_backward(
-        a: &[f32],
-        cp: &[f32],
+}
+
+vectorised! {
+    /// Backward of [`step_forward`] for all rows: d(pre-activations) into d_gates, d_c updated
+    /// to d c_prev.
+    pub(crate) fn step_backward(
+        act: &[f32],
+        c_prev: &[f32],
         c: &[f32],
-        dh: &[f32],
-        dc: &mut [f32],
-        dg: &mut [f32],
+        d_h: &[f32],
+        d_c: &mut [f32],
+        d_gates: &mut [f32],
         h: usize,
     ) {
-        super::cells_backward(a, cp, c, dh, dc, dg, h)
+        for (r, dg) in d_gates.chunks_exact_mut(4 * h).enumerate() {
+            let rows = r * h..(r + 1) * h;
+            let a = &act[r * 4 * h..(r + 1) * 4 * h];
+            cell_backward_row(
+                a,
+                &c_prev[rows.clone()],
+                &c[rows.clone()],
+                &d_h[rows.clone()],
+                &mut d_c[rows],
+                dg,
+            );
+        }
     }
-    pub(super) fn available() -> bool {
-        is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
-    }
-}
-
-/// One time step's cell update for all rows: gates (B, 4H) hold the pre-activations and become
-/// the activations.
-pub(crate) fn step_forward(g: &mut [f32], cp: &[f32], cn: &mut [f32], hn: &mut [f32], h: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if simd::available() {
-        // SAFETY: the CPU has AVX2 and FMA (just checked).
-        return unsafe { simd::cells_forward(g, cp, cn, hn, h) };
-    }
-    cells_forward(g, cp, cn, hn, h)
-}
-
-pub(crate) fn step_backward(
-    a: &[f32],
-    cp: &[f32],
-    c: &[f32],
-    dh: &[f32],
-    dc: &mut [f32],
-    dg: &mut [f32],
-    h: usize,
-) {
-    #[cfg(target_arch = "x86_64")]
-    if simd::available() {
-        // SAFETY: the CPU has AVX2 and FMA (just checked).
-        return unsafe { simd::cells_backward(a, cp, c, dh, dc, dg, h) };
-    }
-    cells_backward(a, cp, c, dh, dc, dg, h)
 }
 
 /// Everything the forward produced, per step, for the backward.
@@ -379,5 +327,59 @@ mod tests {
         }
         assert_eq!(tanh(100.0), 1.0);
         assert_eq!(tanh(-100.0), -1.0);
+    }
+
+    /// Pre-activations and states across the gates' whole range: ordinary values, the
+    /// saturated tails, the exp clamp's edges, zeros of both signs.
+    fn awkward_values(n: usize, seed: u64) -> Vec<f32> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let edges = [
+            0.0, -0.0, 1e-30, -1e-30, 40.0, -40.0, 87.5, -87.5, 200.0, -200.0,
+        ];
+        (0..n)
+            .map(|i| match i % 7 {
+                0 => edges[(i / 7) % edges.len()],
+                1 => rng.random_range(-30.0..30.0),
+                _ => rng.random_range(-4.0..4.0),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn every_simd_tier_gives_the_same_bits() {
+        use crate::policy::simd::{call_tier, tiers};
+        // H = 32 as the encoders use, 257 rows (an odd tail), and H = 5 (no full vector).
+        for (b, h) in [(257, 32), (3, 5)] {
+            let gates = awkward_values(b * 4 * h, 1);
+            let c_prev = awkward_values(b * h, 2);
+            let d_h = awkward_values(b * h, 3);
+            let d_c = awkward_values(b * h, 4);
+            let run = |tier: &str| {
+                let (mut g, mut c, mut hn) = (gates.clone(), vec![0.0; b * h], vec![0.0; b * h]);
+                call_tier!(tier, step_forward, &mut g, &c_prev, &mut c, &mut hn, h);
+                let (mut dc, mut dg) = (d_c.clone(), vec![0.0; b * 4 * h]);
+                call_tier!(
+                    tier,
+                    step_backward,
+                    &g,
+                    &c_prev,
+                    &c,
+                    &d_h,
+                    &mut dc,
+                    &mut dg,
+                    h
+                );
+                [g, c, hn, dc, dg].map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>())
+            };
+            let plain = run("plain");
+            assert!(plain[2].iter().all(|&x| f32::from_bits(x).is_finite()));
+            for tier in tiers() {
+                assert!(
+                    run(tier) == plain,
+                    "{tier} differs from plain (B = {b}, H = {h})"
+                );
+            }
+        }
     }
 }

@@ -16,6 +16,7 @@ pub mod layers;
 pub mod lstm_kernel;
 pub mod pickle_guard;
 pub mod sb3;
+pub(crate) mod simd;
 
 use candle_core::{D, Device, Result, Tensor, Var};
 use rand::SeedableRng;

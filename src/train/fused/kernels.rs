@@ -4,31 +4,7 @@
 
 use crate::policy::gemm::matmul;
 use crate::policy::lstm_kernel;
-
-/// Defines `pub fn $name` whose body is compiled twice, plain and with AVX2 + FMA, and picks the
-/// second at run time where the CPU has them (the crate itself targets baseline x86-64). Only
-/// for loops the compiler can vectorise; the arithmetic (and so every result) is the same.
-macro_rules! with_avx2 {
-    ($(#[$meta:meta])* pub fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
-        $(#[$meta])*
-        pub fn $name($($arg: $ty),*) {
-            #[inline(always)]
-            fn imp($($arg: $ty),*) $body
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2,fma")]
-                unsafe fn avx2($($arg: $ty),*) {
-                    imp($($arg),*)
-                }
-                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                    // SAFETY: the CPU has AVX2 and FMA (just checked).
-                    return unsafe { avx2($($arg),*) };
-                }
-            }
-            imp($($arg),*)
-        }
-    };
-}
+use crate::policy::simd::vectorised;
 
 /// `c (m×n) [+]= a (m×k) · b (k×n)`, all row-major and contiguous.
 pub fn mm(c: &mut [f32], acc: bool, (m, n, k): (usize, usize, usize), a: &[f32], b: &[f32]) {
@@ -72,7 +48,7 @@ pub fn dense_forward(d: DenseRef, x: &[f32], rows: usize, y: &mut [f32], relu: b
     }
 }
 
-with_avx2! {
+vectorised! {
     /// `y = max(y, 0)` in place.
     pub fn relu_in_place(y: &mut [f32]) {
         for v in y.iter_mut() {
@@ -124,7 +100,7 @@ pub fn dense_backward(
     }
 }
 
-with_avx2! {
+vectorised! {
     /// `tanh` in place with the LSTM gates' exp-based tanh, vectorised (the window-MLP encoder's
     /// z; libm's `tanhf` was 5 % of its update).
     pub fn tanh_in_place(v: &mut [f32]) {
@@ -134,7 +110,7 @@ with_avx2! {
     }
 }
 
-with_avx2! {
+vectorised! {
     /// `out[j] = Σ_rows m[row][j]`.
     pub fn column_sums(m: &[f32], cols: usize, out: &mut [f32]) {
         out.fill(0.0);
@@ -146,7 +122,7 @@ with_avx2! {
     }
 }
 
-with_avx2! {
+vectorised! {
     /// Zeroes `d` where the ReLU output `y` is not positive (candle's mask is `x ≥ 0`; the two
     /// differ only where a pre-activation is exactly 0). A select, not a branch: it vectorises.
     pub fn relu_backward(y: &[f32], d: &mut [f32]) {
@@ -334,7 +310,7 @@ pub struct LstmScratch {
     d_gates: Vec<f32>,
 }
 
-with_avx2! {
+vectorised! {
     /// PyTorch's Adam (no weight decay) over one tensor, exactly as [`crate::train::adam::Adam`].
     pub fn adam_step(
         theta: &mut [f32],
@@ -357,7 +333,7 @@ with_avx2! {
     }
 }
 
-with_avx2! {
+vectorised! {
     /// target ← τ·source + (1 − τ)·target, as sac.rs's `polyak_update` (the reference path).
     pub fn polyak(target: &mut [f32], source: &[f32], tau: f32) {
         for (d, s) in target.iter_mut().zip(source) {
@@ -435,6 +411,55 @@ mod tests {
                     .all(|(a, b)| a.to_bits() == b.to_bits()),
                 "part {k}: the copied projection must equal the computed one bit for bit"
             );
+        }
+    }
+
+    #[test]
+    fn every_simd_tier_of_the_update_loops_gives_the_same_bits() {
+        use crate::policy::simd::{call_tier, tiers};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        // 1,027 values: whole 16- and 8-lane vectors and a tail; a few exact zeros (the ReLU
+        // mask's edge) and large values (tanh saturates).
+        let mut draw = |scale: f32| -> Vec<f32> {
+            (0..1027)
+                .map(|i| match i % 11 {
+                    0 => 0.0,
+                    1 => scale * 50.0,
+                    _ => rng.random_range(-scale..scale),
+                })
+                .collect()
+        };
+        let (x, g, m0, v0) = (draw(3.0), draw(1.0), draw(0.1), draw(0.01));
+        let v0: Vec<f32> = v0.iter().map(|v| v.abs()).collect();
+        let run = |tier: &str| {
+            let (mut theta, mut m, mut v) = (x.clone(), m0.clone(), v0.clone());
+            call_tier!(
+                tier,
+                adam_step,
+                &mut theta,
+                &g,
+                &mut m,
+                &mut v,
+                3e-4,
+                0.7,
+                (0.9, 0.999, 1e-8)
+            );
+            let mut target = g.clone();
+            call_tier!(tier, polyak, &mut target, &x, 0.005);
+            let mut relu = x.clone();
+            call_tier!(tier, relu_in_place, &mut relu);
+            let mut d = g.clone();
+            call_tier!(tier, relu_backward, &x, &mut d);
+            let mut t = x.clone();
+            call_tier!(tier, tanh_in_place, &mut t);
+            let mut sums = vec![0.0; 79];
+            call_tier!(tier, column_sums, &x[..79 * 13], 79, &mut sums);
+            [theta, m, v, target, relu, d, t, sums]
+                .map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>())
+        };
+        let plain = run("plain");
+        for tier in tiers() {
+            assert!(run(tier) == plain, "{tier} differs from plain");
         }
     }
 }
