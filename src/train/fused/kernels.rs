@@ -132,7 +132,8 @@ vectorised! {
     }
 }
 
-/// The per-step state an LSTM forward leaves for its backward, time-major.
+/// The per-step state an LSTM forward leaves for its backward, time-major, for `rows` rows (the
+/// buffers may be longer: a tape keeps its largest size).
 #[derive(Default)]
 pub struct LstmTape {
     /// Gate pre-activations, then (after the step) activations i, f, g, o: (T, R, 4H).
@@ -168,9 +169,17 @@ pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmT
     let counts: Vec<usize> = parts.iter().map(|p| p.len() / (t_len * e)).collect();
     let rows: usize = counts.iter().sum();
     tape.rows = rows;
-    tape.gates.resize(t_len * rows * g4, 0.0);
-    tape.cells.resize((t_len + 1) * rows * h, 0.0);
-    tape.hidden.resize((t_len + 1) * rows * h, 0.0);
+    // Grown, never shrunk: one tape serves 512-row and 256-row passes in turn, and growing back
+    // zero-filled it each time (3 % of an LSTM update). Every use below is sliced by `rows`.
+    for (buffer, len) in [
+        (&mut tape.gates, t_len * rows * g4),
+        (&mut tape.cells, (t_len + 1) * rows * h),
+        (&mut tape.hidden, (t_len + 1) * rows * h),
+    ] {
+        if buffer.len() < len {
+            buffer.resize(len, 0.0);
+        }
+    }
     tape.cells[..rows * h].fill(0.0);
     tape.hidden[..rows * h].fill(0.0);
     let shifted =
