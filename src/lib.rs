@@ -1,8 +1,9 @@
 //! gaitscope: watch, train and debug legged-robot policies that adapt to joint damage.
 //!
-//! Data flows one way: physics ([`env`]) → damage ([`damage`]) → policy → telemetry.
-//! The context window ([`window`]) is what a context-encoder policy reads; [`app`] is the live
-//! viewer on top of it all.
+//! Data flows one way: physics ([`env`](mod@env)) → damage ([`damage`]) → policy ([`policy`]) →
+//! the stepping core ([`lane`]) → sinks ([`rollout`], [`eval`], [`probe`], [`telemetry`],
+//! [`video`]) → front-ends ([`app`], the live viewer; the CLI). The context window ([`window`])
+//! is what a context-encoder policy reads; [`train`] learns the policies.
 
 pub mod app;
 pub mod bench;

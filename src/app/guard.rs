@@ -23,7 +23,7 @@ pub struct GuardLimits {
     pub header_timeout: Duration,
     /// Its size at most.
     pub max_header_bytes: usize,
-    /// Answer only requests whose Host is localhost, 127.0.0.1 or [::1].
+    /// Answer only requests whose Host is localhost, 127.0.0.1 or `[::1]`.
     pub loopback_hosts_only: bool,
 }
 

@@ -7,7 +7,8 @@
 //!        └──────── Snapshot (Arc<Mutex>) ◀─────┘
 //! ```
 //! The panel never blocks on physics: it sends commands over a channel and reads the latest
-//! snapshot. The sim thread runs the same [`Session`] loop as `gaitscope record`.
+//! snapshot. The sim thread runs the same [`Session`](crate::telemetry::Session) loop as
+//! `gaitscope record`.
 
 pub mod breakpoint;
 mod sim;

@@ -7,8 +7,8 @@
 //! `probe.json` next to the checkpoint, where telemetry and the live viewer pick them up.
 
 //!
-//! The module follows the data: [`collect`] records rollouts, [`linear`] fits and scores one
-//! probe, [`pca`] holds the latent's basis, [`file`] fits them all into `probe.json`, and
+//! The module follows the data: [`collect`] records rollouts, `linear` fits and scores one
+//! probe, `pca` holds the latent's basis, [`file`] fits them all into `probe.json`, and
 //! [`figures`] draws them.
 
 mod collect;
