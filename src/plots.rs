@@ -130,16 +130,31 @@ pub struct ErrorBarSeries {
 /// Room above the data for the legend, as a fraction of the data's range.
 const LEGEND_HEADROOM: f64 = 0.3;
 
-/// A y tick's label: none above the data's top (the legend's headroom is not a value), whole
-/// numbers on a range of 20 or more (percentages, steps), one decimal below that.
+/// A tick's label on an axis spanning `span`: whole numbers from a span of 20 up (percentages,
+/// returns, steps: "700", not "700.0"), below that the decimals a tenth of the span needs.
+fn tick_label(value: f64, span: f64) -> String {
+    let decimals = if span >= 20.0 || !span.is_finite() || span <= 0.0 {
+        0
+    } else {
+        (-(span / 10.0).log10()).ceil().clamp(0.0, 6.0) as usize
+    };
+    // No "-0": a tick at zero reads 0 from either side.
+    let value = if value.abs() < 0.5 * 10f64.powi(-(decimals as i32)) {
+        0.0
+    } else {
+        value
+    };
+    format!("{value:.decimals$}")
+}
+
+/// An error-bar chart's y tick: none above the values' top (the legend's headroom is not a
+/// value), else [`tick_label`].
 fn y_tick_label(value: f64, (bottom, top): (f64, f64)) -> String {
     let eps = 1e-9 * (top - bottom).abs().max(1.0);
     if value > top + eps {
         String::new()
-    } else if top - bottom >= 20.0 {
-        format!("{value:.0}")
     } else {
-        format!("{value:.1}")
+        tick_label(value, top - bottom)
     }
 }
 
@@ -515,6 +530,7 @@ pub fn line_panels(
                 .x_desc(x_label)
                 .y_desc(&panel.y_label)
                 .x_label_formatter(&|x| thousands(*x))
+                .y_label_formatter(&|y| tick_label(*y, y1 - y0))
                 .label_style(("sans-serif", 13))
                 .draw()?;
             // Faint lines first, so every bold line is drawn over them.
@@ -594,6 +610,18 @@ mod tests {
         // A distance axis of a few metres keeps a decimal.
         assert_eq!(y_tick_label(2.5, (0.0, 5.2)), "2.5");
         assert_eq!(y_tick_label(5.5, (0.0, 5.2)), "");
+    }
+
+    #[test]
+    fn tick_labels_carry_the_decimals_the_span_needs() {
+        assert_eq!(tick_label(700.0, 1000.0), "700");
+        assert_eq!(tick_label(-300.0, 1000.0), "-300");
+        assert_eq!(tick_label(12.0, 20.0), "12");
+        assert_eq!(tick_label(7.5, 6.0), "7.5"); // α or joints: a tenth of 6 is 0.6
+        assert_eq!(tick_label(0.25, 0.1), "0.25"); // the aux loss: 0.19…0.29
+        assert_eq!(tick_label(0.8, 0.8), "0.80");
+        assert_eq!(tick_label(-1e-17, 0.8), "0.00");
+        assert_eq!(tick_label(3.0, 0.0), "3");
     }
 
     #[test]
