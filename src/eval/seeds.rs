@@ -557,13 +557,25 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
         .iter()
         .filter(|(_, k, _)| *k != EncoderKind::None)
         .collect();
-    let mut comparisons = Vec::new();
-    let mut recovery = Vec::new();
     let baseline = groups.iter().find(|(_, k, _)| *k == EncoderKind::None);
+    // (model, reference): each encoder against the baseline, then each pair of encoders in
+    // evaluation order, the later-listed the reference. The paired tests and the probability of
+    // improvement both run over these.
+    let mut pairs: Vec<(&Group, &Group)> = Vec::new();
+    if let Some(base) = baseline {
+        pairs.extend(encoder_groups.iter().map(|&e| (e, base)));
+    }
+    for (i, &a) in encoder_groups.iter().enumerate() {
+        pairs.extend(encoder_groups[i + 1..].iter().map(|&b| (a, b)));
+    }
+    let comparisons: Vec<GroupComparison> = pairs
+        .iter()
+        .flat_map(|&((m, _, m_runs), (r, _, r_runs))| compare((m, m_runs), (r, r_runs)))
+        .collect();
+    let mut recovery = Vec::new();
     if let Some((base, _, base_runs)) = baseline {
         let cell = |g: &str, c: Case| cells.iter().find(|x| x.group == g && x.condition == c);
         for (group, _, runs) in encoder_groups.iter().copied() {
-            comparisons.extend(compare((group, runs), (base, base_runs)));
             let paired = paired_by_seed(runs, base_runs);
             let rate = |model: &str, c: Case| {
                 let eps = run_episodes(model, c);
@@ -602,26 +614,8 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
             }
         }
     }
-    for (i, (a, _, a_runs)) in encoder_groups.iter().enumerate() {
-        for (b, _, b_runs) in &encoder_groups[i + 1..] {
-            comparisons.extend(compare((a, a_runs), (b, b_runs)));
-        }
-    }
-    // Encoders against the baseline first, then each pair of encoders (in evaluation order).
-    let mut pairs: Vec<(&str, &str)> = Vec::new();
-    let encoders: Vec<&str> = groups
-        .iter()
-        .filter(|(_, k, _)| *k != EncoderKind::None)
-        .map(|(g, _, _)| g.as_str())
-        .collect();
-    if let Some((base, _, _)) = baseline {
-        pairs.extend(encoders.iter().map(|e| (*e, base.as_str())));
-    }
-    for (i, a) in encoders.iter().enumerate() {
-        pairs.extend(encoders[i + 1..].iter().map(|b| (*a, *b)));
-    }
     let mut improvements = Vec::new();
-    for (better, than) in pairs {
+    for ((better, _, _), (than, _, _)) in pairs {
         for &condition in conditions {
             let counts = |g: &str| -> Vec<(usize, usize)> {
                 cells
