@@ -58,8 +58,7 @@ for model in baseline encoder-lstm-aux encoder-lstm encoder-mlp; do
   if [ "$model" = encoder-lstm-aux ] && [ ${#short[@]} -gt 0 ] && ! $partial; then
     # Issue 33's model joins when all its seeds have; the other three are the core set.
     echo "results: leaving out $model until all its runs are at $steps steps:" >&2
-    printf '  %s
-' "${short[@]}" >&2
+    printf '  %s\n' "${short[@]}" >&2
     continue
   fi
   missing+=(${short[@]+"${short[@]}"})

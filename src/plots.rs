@@ -274,6 +274,7 @@ pub fn stacked_bars(
             .configure_mesh()
             .y_desc(y_label)
             .y_labels(6)
+            .y_label_formatter(&|y| y_tick_label(*y, (0.0, top)))
             .x_labels(bars.len())
             .x_label_formatter(&|x| {
                 let i = x.round() as i64;
@@ -359,6 +360,8 @@ pub fn bands(
             .configure_mesh()
             .x_desc(x_label)
             .y_desc(y_label)
+            .x_label_formatter(&|x| tick_label(*x, x1 - x0))
+            .y_label_formatter(&|y| tick_label(*y, y1 - y0))
             .label_style(("sans-serif", 15))
             .draw()?;
         for ser in series {
@@ -430,6 +433,8 @@ pub fn scatter(
             .configure_mesh()
             .x_desc(axes.0)
             .y_desc(axes.1)
+            .x_label_formatter(&|x| tick_label(*x, x1 - x0))
+            .y_label_formatter(&|y| tick_label(*y, y1 - y0))
             .label_style(("sans-serif", 15))
             .draw()?;
         let colors = viridis(classes.len());

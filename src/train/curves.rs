@@ -154,16 +154,24 @@ impl RunMetrics {
 
     /// The label of a run with gaps names them: "encoder-lstm-s2 (no log 233k–408k)".
     pub fn label(&self, name: &str) -> String {
+        match self.gap_list() {
+            Some(list) => format!("{name} (no log {list})"),
+            None => name.to_string(),
+        }
+    }
+
+    /// The gaps as "233k–408k, 423k–500k"; `None` without gaps.
+    fn gap_list(&self) -> Option<String> {
         let gaps = self.gaps();
         if gaps.is_empty() {
-            return name.to_string();
+            return None;
         }
         let k = |s: u64| format!("{}k", s / 1000);
         let list: Vec<String> = gaps
             .iter()
             .map(|&(a, b)| format!("{}–{}", k(a), k(b)))
             .collect();
-        format!("{name} (no log {})", list.join(", "))
+        Some(list.join(", "))
     }
 }
 
@@ -279,7 +287,30 @@ fn panels(runs: &[CurveRun]) -> Vec<LinePanel> {
                 });
                 continue;
             }
-            let name = format!("{group} (mean of {} seeds)", members.len());
+            // The mean breaks wherever one seed has no log: the legend says whose and where,
+            // by the run's name past its group's ("s2"), or its whole name for seed 0.
+            let unlogged: Vec<String> = members
+                .iter()
+                .filter_map(|r| {
+                    let list = r.metrics.gap_list()?;
+                    let who = r
+                        .label
+                        .strip_prefix(*group)
+                        .map(|s| s.trim_start_matches('-'))
+                        .filter(|s| !s.is_empty())
+                        .unwrap_or(&r.label);
+                    Some(format!("{who} no log {list}"))
+                })
+                .collect();
+            let name = if unlogged.is_empty() {
+                format!("{group} (mean of {} seeds)", members.len())
+            } else {
+                format!(
+                    "{group} (mean of {} seeds; {})",
+                    members.len(),
+                    unlogged.join("; ")
+                )
+            };
             for curve in &curves {
                 lines.push(Line {
                     name: name.clone(),
@@ -485,9 +516,9 @@ mod tests {
         assert_eq!(
             names,
             [
-                ("lstm (mean of 2 seeds)", true),
-                ("lstm (mean of 2 seeds)", true),
-                ("lstm (mean of 2 seeds)", false),
+                ("lstm (mean of 2 seeds; s1 no log 2k–5k)", true),
+                ("lstm (mean of 2 seeds; s1 no log 2k–5k)", true),
+                ("lstm (mean of 2 seeds; s1 no log 2k–5k)", false),
                 ("baseline", false),
             ]
         );
