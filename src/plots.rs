@@ -560,7 +560,7 @@ pub fn line_panels(
                     pieces.push(Vec::new()); // still one (empty) series for the legend
                 }
                 for (i, piece) in pieces.into_iter().enumerate() {
-                    let series = chart.draw_series(LineSeries::new(piece, style))?;
+                    let series = chart.draw_series(stroke_segments(&piece, style))?;
                     if label && i == 0 {
                         series.label(line.name.clone()).legend(move |(x, y)| {
                             PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
@@ -581,6 +581,21 @@ pub fn line_panels(
         }
         Ok(())
     })
+}
+
+/// A polyline as one path per segment. plotters fills a line wider than a pixel as a single
+/// polygon, and where a dense, jagged line (a rolling mean over hundreds of episodes) folds back
+/// on itself the fill leaves holes, so the line looked hollow and broken; each segment alone is
+/// a simple quadrilateral.
+fn stroke_segments(
+    points: &[(f64, f64)],
+    style: ShapeStyle,
+) -> impl Iterator<Item = PathElement<(f64, f64)>> + '_ {
+    let single = (points.len() == 1).then(|| PathElement::new(vec![points[0]], style));
+    points
+        .windows(2)
+        .map(move |w| PathElement::new(vec![w[0], w[1]], style))
+        .chain(single)
 }
 
 /// The runs of finite points of `line`, split wherever y is not finite.
@@ -644,6 +659,67 @@ mod tests {
             vec![vec![(0.0, 1.0), (1.0, 2.0)], vec![(3.0, 3.0)]]
         );
         assert!(segments(&[(0.0, f64::NAN)]).is_empty());
+    }
+
+    #[test]
+    fn a_dense_jagged_bold_line_is_painted_solid() {
+        // 3000 points zigzagging between 0.2 and 0.8 across ~470 px: every pixel column between
+        // them is crossed many times, so the band they span must be painted in the line's
+        // colour throughout (plotters' one-polygon wide line left it hollow in patches).
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("zigzag.png");
+        let points = (0..3000)
+            .map(|i| (i as f64, if i % 2 == 0 { 0.2 } else { 0.8 }))
+            .collect();
+        let panel = LinePanel {
+            title: "zigzag".into(),
+            y_label: "y".into(),
+            lines: vec![Line {
+                name: "line".into(),
+                colour: 1,
+                points,
+                faint: false,
+            }],
+            y_range: Some((0.0, 1.0)),
+            legend: None,
+        };
+        line_panels(&path, "x", 1, &[panel]).unwrap();
+        let decoder =
+            png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path).unwrap()));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        let channels = info.color_type.samples();
+        let colour = palette(1);
+        let painted = |x: u32, y: u32| {
+            let i = (y * info.width + x) as usize * channels;
+            buf[i..i + 3] == [colour.0, colour.1, colour.2]
+        };
+        // The band: the line colour's bounding box, shrunk by the 2 px stroke at each edge.
+        let hits: Vec<(u32, u32)> = (0..info.height)
+            .flat_map(|y| (0..info.width).map(move |x| (x, y)))
+            .filter(|&(x, y)| painted(x, y))
+            .collect();
+        let (x0, x1) = (
+            hits.iter().map(|p| p.0).min().unwrap() + 2,
+            hits.iter().map(|p| p.0).max().unwrap() - 2,
+        );
+        let (y0, y1) = (
+            hits.iter().map(|p| p.1).min().unwrap() + 2,
+            hits.iter().map(|p| p.1).max().unwrap() - 2,
+        );
+        assert!(
+            x1 > x0 + 300 && y1 > y0 + 100,
+            "band {x0}..{x1} × {y0}..{y1}"
+        );
+        let band = (x0..=x1).flat_map(|x| (y0..=y1).map(move |y| (x, y)));
+        let holes = band.clone().filter(|&(x, y)| !painted(x, y)).count();
+        assert_eq!(
+            holes,
+            0,
+            "{holes} of {} band pixels unpainted",
+            band.count()
+        );
     }
 
     #[test]
