@@ -114,6 +114,8 @@ case "${1:-status}" in
     fi
     mkdir -p "$state" "$seeds_dir"
     rm -f "$state/stop"
+    # A fresh clone has no libmujoco yet (the build links it): fetch it first, as `make` does.
+    "$root/scripts/setup.sh"
     (cd "$root" && ${CARGO:-cargo} build --release --quiet)
     # A copy, so later builds never change the binary under a running trainer.
     cp "${CARGO_TARGET_DIR:-$root/target}/release/gaitscope" "$state/gaitscope.tmp"
