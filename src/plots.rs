@@ -249,69 +249,124 @@ pub struct StackedBar {
     pub segments: Vec<f64>,
 }
 
-/// Stacked bars side by side, one colour per segment kind (named in the legend).
+/// One panel of stacked bars (one model's conditions), titled.
+pub struct BarPanel {
+    pub title: String,
+    pub bars: Vec<StackedBar>,
+}
+
+const BAR_LABEL_PX: f64 = 13.0;
+const BAR_CHART_MARGIN: u32 = 12;
+const BAR_CHART_Y_LABELS: u32 = 56;
+/// Space between two neighbouring bar labels.
+const BAR_LABEL_GAP: u32 = 16;
+const BAR_FIGURE_WIDTH: u32 = 1200;
+const BAR_TITLE_HEIGHT: u32 = 40;
+const BAR_LEGEND_HEIGHT: u32 = 30;
+const BAR_PANEL_HEIGHT: u32 = 260;
+
+/// Where the panels of a stacked-bar figure go.
+#[derive(Debug, PartialEq)]
+struct BarLayout {
+    cols: usize,
+    rows: usize,
+    width: u32,
+    height: u32,
+}
+
+/// Panels side by side while they fit 1200 px, else in rows, each panel wide enough that every
+/// bar's slot holds its widest label (measured in the bundled font) and a gap, so no two labels
+/// run together (twelve "model condition" labels in one 1200-px row did).
+fn bar_layout(panels: &[BarPanel]) -> BarLayout {
+    register_font();
+    let font = ("sans-serif", BAR_LABEL_PX).into_font();
+    let slot = panels
+        .iter()
+        .flat_map(|p| &p.bars)
+        .map(|b| font.box_size(&b.label).map_or(0, |(w, _)| w))
+        .max()
+        .unwrap_or(0)
+        + BAR_LABEL_GAP;
+    let most_bars = panels.iter().map(|p| p.bars.len()).max().unwrap_or(0) as u32;
+    let panel_width = most_bars * slot + 2 * BAR_CHART_MARGIN + BAR_CHART_Y_LABELS;
+    let cols = ((BAR_FIGURE_WIDTH / panel_width.max(1)) as usize).clamp(1, panels.len().max(1));
+    let rows = panels.len().div_ceil(cols).max(1);
+    BarLayout {
+        cols,
+        rows,
+        width: BAR_FIGURE_WIDTH.max(cols as u32 * panel_width),
+        height: BAR_TITLE_HEIGHT + BAR_LEGEND_HEIGHT + rows as u32 * BAR_PANEL_HEIGHT,
+    }
+}
+
+/// Stacked bars, one panel per group (a model), one colour per segment kind; the legend is a
+/// row under the title, so it never covers a bar.
 pub fn stacked_bars(
     path: &Path,
     title: &str,
     y_label: &str,
     segment_names: &[&str],
-    bars: &[StackedBar],
+    panels: &[BarPanel],
 ) -> Result<(), PlotError> {
-    let top = bars
+    let top = panels
         .iter()
+        .flat_map(|p| &p.bars)
         .map(|b| b.segments.iter().sum::<f64>())
         .fold(0.0f64, f64::max)
         .max(1e-9);
-    render(path, (1200, 560), |root| {
-        let mut chart = ChartBuilder::on(root)
-            .caption(title, ("sans-serif", 24))
-            .margin(16)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            // Headroom keeps the legend off the bars.
-            .build_cartesian_2d(-0.5f64..bars.len() as f64 - 0.5, 0.0..top * 1.3)?;
-        chart
-            .configure_mesh()
-            .y_desc(y_label)
-            .y_labels(6)
-            .y_label_formatter(&|y| y_tick_label(*y, (0.0, top)))
-            .x_labels(bars.len())
-            .x_label_formatter(&|x| {
-                let i = x.round() as i64;
-                if (x - i as f64).abs() < 1e-6 && i >= 0 {
-                    bars.get(i as usize)
-                        .map(|b| b.label.clone())
-                        .unwrap_or_default()
-                } else {
-                    String::new()
-                }
-            })
-            .disable_x_mesh()
-            .label_style(("sans-serif", 13))
-            .draw()?;
+    let layout = bar_layout(panels);
+    render(path, (layout.width, layout.height), |root| {
+        let body = root.titled(title, ("sans-serif", 24))?;
+        let (legend, grid) = body.split_vertically(BAR_LEGEND_HEIGHT);
+        let key_font = ("sans-serif", 14).into_font();
+        let mut x = BAR_CHART_Y_LABELS as i32;
         for (k, name) in segment_names.iter().enumerate() {
             let color = PALETTE[k % PALETTE.len()];
+            legend.draw(&Rectangle::new([(x, 8), (x + 14, 22)], color.filled()))?;
+            legend.draw(&Text::new(name.to_string(), (x + 20, 8), key_font.clone()))?;
+            let w = key_font.box_size(name).map_or(0, |(w, _)| w) as i32;
+            x += 20 + w + 28;
+        }
+        let cells = grid.split_evenly((layout.rows, layout.cols));
+        for (panel, area) in panels.iter().zip(&cells) {
+            let bars = &panel.bars;
+            let mut chart = ChartBuilder::on(area)
+                .caption(&panel.title, ("sans-serif", 17))
+                .margin(BAR_CHART_MARGIN)
+                .x_label_area_size(28)
+                .y_label_area_size(BAR_CHART_Y_LABELS)
+                .build_cartesian_2d(-0.5f64..bars.len() as f64 - 0.5, 0.0..top)?;
             chart
-                .draw_series(bars.iter().enumerate().map(|(i, bar)| {
+                .configure_mesh()
+                .y_desc(y_label)
+                .y_labels(6)
+                .y_label_formatter(&|y| y_tick_label(*y, (0.0, top)))
+                .x_labels(bars.len())
+                .x_label_formatter(&|x| {
+                    let i = x.round() as i64;
+                    if (x - i as f64).abs() < 1e-6 && i >= 0 {
+                        bars.get(i as usize)
+                            .map(|b| b.label.clone())
+                            .unwrap_or_default()
+                    } else {
+                        String::new()
+                    }
+                })
+                .disable_x_mesh()
+                .label_style(("sans-serif", BAR_LABEL_PX))
+                .draw()?;
+            for k in 0..segment_names.len() {
+                let color = PALETTE[k % PALETTE.len()];
+                chart.draw_series(bars.iter().enumerate().map(|(i, bar)| {
                     let base: f64 = bar.segments[..k.min(bar.segments.len())].iter().sum();
                     let h = bar.segments.get(k).copied().unwrap_or(0.0);
                     Rectangle::new(
                         [(i as f64 - 0.35, base), (i as f64 + 0.35, base + h)],
                         color.filled(),
                     )
-                }))?
-                .label(name.to_string())
-                .legend(move |(x, y)| {
-                    Rectangle::new([(x, y - 5), (x + 12, y + 5)], color.filled())
-                });
+                }))?;
+            }
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 14))
-            .draw()?;
         Ok(())
     })
 }
@@ -618,6 +673,59 @@ fn thousands(x: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bar_panels_fit_their_labels() {
+        register_font();
+        let font = ("sans-serif", BAR_LABEL_PX).into_font();
+        // DejaVu Sans at 13 px: about 0.55 em a character, so "ood-intermittent" (16) is ~114 px.
+        let (w, _) = font
+            .box_size("ood-intermittent")
+            .expect("the bundled font measures");
+        assert!((85..=145).contains(&w), "{w} px");
+        let panels = |labels: &[&str]| -> Vec<BarPanel> {
+            [
+                "baseline",
+                "encoder-lstm-aux",
+                "encoder-lstm",
+                "encoder-mlp",
+            ]
+            .iter()
+            .map(|m| BarPanel {
+                title: m.to_string(),
+                bars: labels
+                    .iter()
+                    .map(|l| StackedBar {
+                        label: l.to_string(),
+                        segments: vec![100.0],
+                    })
+                    .collect(),
+            })
+            .collect()
+        };
+        // Four models × three conditions: one row of four panels at the default width.
+        let eval = bar_layout(&panels(&["healthy", "mild", "severe"]));
+        assert_eq!((eval.cols, eval.rows, eval.width), (4, 1, 1200));
+        // Four models × the `ood` suite's eight columns: a panel per row, each bar's slot at
+        // least its widest label and the gap.
+        let ood = [
+            "healthy",
+            "ood-ankle",
+            "ood-leg",
+            "ood-diagonal",
+            "ood-decay",
+            "ood-intermittent",
+            "ood-sides",
+            "ood-late-fault",
+        ];
+        let layout = bar_layout(&panels(&ood));
+        assert_eq!((layout.cols, layout.rows), (1, 4));
+        let slot = (layout.width - 2 * BAR_CHART_MARGIN - BAR_CHART_Y_LABELS) / ood.len() as u32;
+        assert!(
+            slot >= w + BAR_LABEL_GAP,
+            "slot {slot} px for a {w}-px label"
+        );
+    }
 
     #[test]
     fn y_ticks_are_labelled_only_over_the_data() {

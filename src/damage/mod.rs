@@ -599,6 +599,24 @@ impl DamageState {
             JointState::Healthy
         }
     }
+    /// The first step run under damage, if any: the step after the first fatigue trigger (a
+    /// trigger during step `t` scales `t + 1` on, under every condition, healthy's 1.0
+    /// included), or the step from which a scenario or a person first failed or weakened a
+    /// joint. Scenario damage never triggers (`ood` turns fatigue off), so this, not
+    /// [`Self::first_trigger_steps`], says when an `ood` episode began under damage.
+    pub fn damage_onset(&self) -> Option<usize> {
+        self.events
+            .iter()
+            .filter_map(|e| match e.kind {
+                DamageEventKind::Trigger => Some(e.step + 1),
+                DamageEventKind::Override {
+                    change: JointOverride::FailNow | JointOverride::FailTo(_),
+                } => Some(e.step),
+                DamageEventKind::Override { .. } => (e.scale < 1.0).then_some(e.step),
+            })
+            .min()
+    }
+
     /// Step at which each actuator first triggered by fatigue, if it did.
     pub fn first_trigger_steps(&self) -> [Option<usize>; N_ACTUATORS] {
         let mut steps = [None; N_ACTUATORS];
@@ -732,6 +750,7 @@ mod tests {
         assert_eq!(d.events()[0].step, 29);
         assert_eq!(d.events()[0].fatigue, 30.0);
         assert_eq!(d.first_trigger_steps()[0], Some(29));
+        assert_eq!(d.damage_onset(), Some(30));
         // Persists and does not re-trigger.
         for t in 30..100 {
             assert_eq!(d.accumulate(t, &a, &none), 0);
@@ -742,6 +761,25 @@ mod tests {
         d.reset(Condition::Healthy);
         assert_eq!(d.n_triggered(), 0);
         assert!(d.events().is_empty());
+    }
+
+    #[test]
+    fn damage_onset_is_the_first_step_run_under_damage() {
+        let mut d = state(Condition::Mild);
+        assert_eq!(d.damage_onset(), None);
+        // Neither a scale of 1 nor a heal weakens anything.
+        d.apply_override(2, 1, JointOverride::SetScale(1.0))
+            .unwrap();
+        d.apply_override(3, 1, JointOverride::Heal).unwrap();
+        assert_eq!(d.damage_onset(), None);
+        // A scenario's weak joint counts from the step it was set before (`ood` never triggers).
+        d.apply_override(7, 4, JointOverride::SetScale(0.3))
+            .unwrap();
+        assert_eq!(d.damage_onset(), Some(7));
+        // A failure by hand counts even at the healthy condition's scale of 1, as a trigger does.
+        let mut h = state(Condition::Healthy);
+        h.apply_override(5, 0, JointOverride::FailNow).unwrap();
+        assert_eq!(h.damage_onset(), Some(5));
     }
 
     #[test]

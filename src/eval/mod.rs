@@ -159,6 +159,9 @@ pub struct EpisodeRecord {
     pub episode_return: f64,
     pub triggered_joints: usize,
     pub trigger_steps: [Option<usize>; N_ACTUATORS],
+    /// The first step run under damage ([`crate::damage::DamageState::damage_onset`]): after
+    /// the first trigger, or from a scenario's first weakened joint.
+    pub damage_onset: Option<usize>,
 }
 
 impl EpisodeRecord {
@@ -394,6 +397,7 @@ pub fn run_lockstep(
                     episode_return: returns[i],
                     triggered_joints: damage.n_triggered(),
                     trigger_steps: damage.first_trigger_steps(),
+                    damage_onset: damage.damage_onset(),
                 });
             }
         }
@@ -867,28 +871,37 @@ fn across_seeds_figures(
         &series,
         (0.0, 100.0),
     )?;
-    let bars: Vec<plots::StackedBar> = groups
+    // One panel per model, its conditions as bars.
+    let panels: Vec<plots::BarPanel> = groups
         .iter()
-        .flat_map(|&g| conditions.iter().filter_map(move |&c| get(g, c)))
-        .map(|cell| {
-            let f = cell.failure_modes;
-            let n = f.total().max(1) as f64;
-            plots::StackedBar {
-                label: format!(
-                    "{} {}",
-                    cell.group.strip_prefix("encoder-").unwrap_or(&cell.group),
-                    cell.condition
-                ),
-                segments: [
-                    f.success,
-                    f.timed_out,
-                    f.terminated_after_damage,
-                    f.terminated_before_damage,
-                ]
+        .map(|&g| plots::BarPanel {
+            title: format!(
+                "{g} ({} seeds)",
+                conditions
+                    .first()
+                    .and_then(|&c| get(g, c))
+                    .map_or(0, |c| c.runs.len())
+            ),
+            bars: conditions
                 .iter()
-                .map(|&k| 100.0 * k as f64 / n)
+                .filter_map(|&c| get(g, c))
+                .map(|cell| {
+                    let f = cell.failure_modes;
+                    let n = f.total().max(1) as f64;
+                    plots::StackedBar {
+                        label: cell.condition.to_string(),
+                        segments: [
+                            f.success,
+                            f.timed_out,
+                            f.terminated_after_damage,
+                            f.terminated_before_damage,
+                        ]
+                        .iter()
+                        .map(|&k| 100.0 * k as f64 / n)
+                        .collect(),
+                    }
+                })
                 .collect(),
-            }
         })
         .collect();
     let modes_path = out.join("failure_modes.png");
@@ -902,7 +915,7 @@ fn across_seeds_figures(
             "fell after damage",
             "fell before damage",
         ],
-        &bars,
+        &panels,
     )?;
     Ok(vec![success_path, modes_path])
 }

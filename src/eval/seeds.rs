@@ -39,8 +39,8 @@ pub fn group_of(label: &str) -> String {
 #[serde(rename_all = "snake_case")]
 pub enum FailureMode {
     Success,
-    /// Fell (or flipped) before any joint had triggered, or on the trigger's own step: damage
-    /// cannot have caused it.
+    /// Fell (or flipped) before any step ran under damage (no trigger yet, or only on the step
+    /// it fell; no joint weakened by a scenario yet): damage cannot have caused it.
     TerminatedBeforeDamage,
     /// Fell with at least one step taken under damage.
     TerminatedAfterDamage,
@@ -49,28 +49,23 @@ pub enum FailureMode {
 }
 
 impl EpisodeRecord {
-    /// The step of the episode's first trigger, on any joint.
-    pub fn first_trigger(&self) -> Option<usize> {
-        self.trigger_steps.iter().flatten().min().copied()
-    }
-
     pub fn failure_mode(&self) -> FailureMode {
         if self.success {
             FailureMode::Success
         } else if !self.terminated {
             FailureMode::TimedOut
-        } else if self.first_trigger().is_some_and(|t| t + 1 < self.steps) {
+        } else if self.damage_onset.is_some_and(|t| t < self.steps) {
             FailureMode::TerminatedAfterDamage
         } else {
             FailureMode::TerminatedBeforeDamage
         }
     }
 
-    /// A joint triggered and the episode went on past that step (the episodes where adapting to
-    /// damage can matter at all).
+    /// A step ran under damage, or a joint triggered on the last step of an episode that timed
+    /// out rather than fell (the episodes where adapting to damage can matter at all).
     pub fn reached_damage(&self) -> bool {
-        self.first_trigger()
-            .is_some_and(|t| t + 1 < self.steps || (t < self.steps && !self.terminated))
+        self.damage_onset
+            .is_some_and(|t| t < self.steps || (t == self.steps && !self.terminated))
     }
 }
 
@@ -331,7 +326,7 @@ pub struct SeedCell {
     pub train_seed: u64,
     pub success: BTreeMap<usize, Rate>,
     pub failure_modes: FailureCounts,
-    /// Success@500 among the episodes that reached their first trigger.
+    /// Success@500 among the episodes that reached damage ([`EpisodeRecord::reached_damage`]).
     pub success_after_damage: Rate,
 }
 
@@ -699,8 +694,8 @@ impl AcrossSeeds {
             );
         }
         s += "\n**Failure modes** (episodes summed over seeds; a fall counts as after damage once a \
-              step was taken with a joint triggered) and **success among the episodes that reached \
-              their first trigger**, the only ones where adapting to damage can matter (mean over \
+              step was taken with a joint triggered or weakened by a scenario) and **success among \
+              the episodes that reached damage**, the only ones where adapting to damage can matter (mean over \
               seeds [95 % bootstrap], episodes)\n\n\
               | model | condition | success | fell before damage | fell after damage | timed out | \
               success once damaged |\n|---|---|---:|---:|---:|---:|---:|\n";
@@ -710,7 +705,7 @@ impl AcrossSeeds {
             let share = |k: usize| format!("{k} ({:.0} %)", 100.0 * k as f64 / n);
             let reached: usize = g.runs.iter().map(|r| r.success_after_damage.n).sum();
             let after = if reached == 0 {
-                "– (no episode reached a trigger)".to_string()
+                "– (no episode reached damage)".to_string()
             } else {
                 format!("{} (n = {reached})", interval(&g.success_after_damage))
             };
@@ -956,15 +951,24 @@ mod tests {
         assert!(same.low < 0.5 && same.high > 0.5, "{same:?}");
     }
 
-    fn episode(
-        success: bool,
-        terminated: bool,
-        steps: usize,
-        first_trigger: Option<usize>,
-    ) -> EpisodeRecord {
+    /// What damaged an episode, and from which step.
+    #[derive(Debug, Clone, Copy)]
+    enum Onset {
+        Never,
+        /// Fatigue triggered a joint during this step (it scales the next one).
+        Trigger(usize),
+        /// A scenario weakened a joint before this step ran (`ood`: no trigger at all).
+        Scenario(usize),
+    }
+
+    fn episode(success: bool, terminated: bool, steps: usize, onset: Onset) -> EpisodeRecord {
         let mut trigger_steps = [None; N_ACTUATORS];
+        let (first_trigger, damage_onset) = match onset {
+            Onset::Never => (None, None),
+            Onset::Trigger(t) => (Some(t), Some(t + 1)),
+            Onset::Scenario(s) => (None, Some(s)),
+        };
         trigger_steps[3] = first_trigger;
-        // A later trigger on another joint must not move the first one.
         trigger_steps[5] = first_trigger.map(|t| t + 40);
         EpisodeRecord {
             model: "m".into(),
@@ -982,38 +986,48 @@ mod tests {
             episode_return: 0.0,
             triggered_joints: first_trigger.map_or(0, |_| 2),
             trigger_steps,
+            damage_onset,
         }
     }
 
     #[test]
     fn failure_modes_of_constructed_episodes() {
         use FailureMode::*;
+        use Onset::*;
         let cases = [
-            // (success, terminated, steps, first trigger) → mode, reached damage
-            ((true, true, 180, Some(60)), Success, true),
-            ((true, true, 180, None), Success, false),
-            // Fell at step index 49 with no trigger, or with one only later than its end.
-            ((false, true, 50, None), TerminatedBeforeDamage, false),
-            ((false, true, 50, Some(120)), TerminatedBeforeDamage, false),
+            // (success, terminated, steps, onset) → mode, reached damage
+            ((true, true, 180, Trigger(60)), Success, true),
+            ((true, true, 180, Never), Success, false),
+            // Fell at step index 49 with no trigger.
+            ((false, true, 50, Never), TerminatedBeforeDamage, false),
             // Triggered on the very step it fell: no step was taken under damage.
-            ((false, true, 50, Some(49)), TerminatedBeforeDamage, false),
-            ((false, true, 50, Some(48)), TerminatedAfterDamage, true),
-            ((false, true, 300, Some(10)), TerminatedAfterDamage, true),
-            ((false, false, 500, Some(10)), TimedOut, true),
-            ((false, false, 500, Some(499)), TimedOut, true),
-            ((false, false, 500, None), TimedOut, false),
+            (
+                (false, true, 50, Trigger(49)),
+                TerminatedBeforeDamage,
+                false,
+            ),
+            ((false, true, 50, Trigger(48)), TerminatedAfterDamage, true),
+            ((false, true, 300, Trigger(10)), TerminatedAfterDamage, true),
+            ((false, false, 500, Trigger(10)), TimedOut, true),
+            ((false, false, 500, Trigger(499)), TimedOut, true),
+            ((false, false, 500, Never), TimedOut, false),
+            // A scenario's weak ankle from the first step (`ood-ankle`), and a fault set before
+            // the step the Ant fell on: both falls ran under damage, with no trigger at all.
+            ((false, true, 50, Scenario(0)), TerminatedAfterDamage, true),
+            ((false, true, 50, Scenario(49)), TerminatedAfterDamage, true),
+            ((true, true, 80, Scenario(0)), Success, true),
         ];
-        for ((success, terminated, steps, trigger), mode, reached) in cases {
-            let e = episode(success, terminated, steps, trigger);
+        for ((success, terminated, steps, onset), mode, reached) in cases {
+            let e = episode(success, terminated, steps, onset);
             assert_eq!(
                 e.failure_mode(),
                 mode,
-                "{success} {terminated} {steps} {trigger:?}"
+                "{success} {terminated} {steps} {onset:?}"
             );
             assert_eq!(
                 e.reached_damage(),
                 reached,
-                "{success} {terminated} {steps} {trigger:?}"
+                "{success} {terminated} {steps} {onset:?}"
             );
         }
         let eps: Vec<EpisodeRecord> = cases
@@ -1028,7 +1042,7 @@ mod tests {
                 c.terminated_after_damage,
                 c.timed_out
             ),
-            (2, 3, 2, 3)
+            (3, 2, 4, 3)
         );
         assert_eq!(c.total(), eps.len());
     }
@@ -1041,7 +1055,7 @@ mod tests {
             wins.iter()
                 .enumerate()
                 .map(|(i, &w)| {
-                    let mut e = episode(w, true, if w { 200 } else { 40 }, None);
+                    let mut e = episode(w, true, if w { 200 } else { 40 }, Onset::Never);
                     (e.model, e.group, e.encoder) = (model.into(), group_of(model), encoder);
                     (e.train_seed, e.seed, e.episode) = (train_seed, 100 + i as u64, i);
                     e
