@@ -830,6 +830,14 @@ fn across_seeds_figures(
             .iter()
             .find(|x| x.group == g && x.condition == c)
     };
+    // A model and its seed count, as both figures name it.
+    let group_label = |g: &str| {
+        let n_seeds = conditions
+            .iter()
+            .find_map(|&c| get(g, c))
+            .map_or(0, |c| c.runs.len());
+        format!("{g} ({n_seeds} seeds)")
+    };
     let colours = plots::colour_slots(&groups, &plots::MODEL_COLOURS);
     let series: Vec<ErrorBarSeries> = groups
         .iter()
@@ -837,9 +845,8 @@ fn across_seeds_figures(
         .map(|(&g, colour)| {
             let cells: Vec<&seeds::GroupCell> =
                 conditions.iter().filter_map(|&c| get(g, c)).collect();
-            let n_seeds = cells.first().map_or(0, |c| c.runs.len());
             ErrorBarSeries {
-                label: format!("{g} ({n_seeds} seeds)"),
+                label: group_label(g),
                 colour,
                 in_legend: true,
                 points: cells
@@ -875,13 +882,7 @@ fn across_seeds_figures(
     let panels: Vec<plots::BarPanel> = groups
         .iter()
         .map(|&g| plots::BarPanel {
-            title: format!(
-                "{g} ({} seeds)",
-                conditions
-                    .first()
-                    .and_then(|&c| get(g, c))
-                    .map_or(0, |c| c.runs.len())
-            ),
+            title: group_label(g),
             bars: conditions
                 .iter()
                 .filter_map(|&c| get(g, c))

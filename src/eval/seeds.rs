@@ -695,8 +695,8 @@ impl AcrossSeeds {
         }
         s += "\n**Failure modes** (episodes summed over seeds; a fall counts as after damage once a \
               step was taken with a joint triggered or weakened by a scenario) and **success among \
-              the episodes that reached damage**, the only ones where adapting to damage can matter (mean over \
-              seeds [95 % bootstrap], episodes)\n\n\
+              the episodes that reached damage**, the only ones where adapting to damage can matter \
+              (mean over seeds [95 % bootstrap], episodes)\n\n\
               | model | condition | success | fell before damage | fell after damage | timed out | \
               success once damaged |\n|---|---|---:|---:|---:|---:|---:|\n";
         for g in &self.groups {
@@ -969,7 +969,6 @@ mod tests {
             Onset::Scenario(s) => (None, Some(s)),
         };
         trigger_steps[3] = first_trigger;
-        trigger_steps[5] = first_trigger.map(|t| t + 40);
         EpisodeRecord {
             model: "m".into(),
             group: "m".into(),
