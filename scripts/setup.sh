@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Idempotent setup: fetches the native pieces gaitscope uses, from PyPI only, into the
 # git-ignored folder .deps/. Safe to run any number of times.
+#   Rust 1.98 by rustup, where missing (scripts/toolchain.sh: rust-toolchain.toml's pin)
 #   .deps/mujoco/lib/libmujoco.so.3.17.0 (+ libmujoco.so link)  from the mujoco==3.17.0 wheel
 #   .deps/rerun/rerun (only with --viewer)                        from the rerun-sdk==0.41.0 wheel
 #   Debian's ffmpeg and Mesa EGL for `gaitscope video` (apt-get, where missing; a warning if it can't)
@@ -34,6 +35,9 @@ os.replace(dest + ".tmp", dest)
 PY
   rm -f "$wheel"
 }
+
+# The pinned Rust toolchain first: every later cargo call (make's, .ci/run's) goes through it.
+"$root/scripts/toolchain.sh"
 
 lib_dir="$deps/mujoco/lib"
 if [ ! -s "$lib_dir/libmujoco.so.$MUJOCO_VERSION" ]; then
