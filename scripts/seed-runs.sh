@@ -1,60 +1,58 @@
 #!/usr/bin/env bash
-# The evidence runs (issue 31): seeds 2-5 of every model, 500k steps each, the protocol of seed 0
-# (`gaitscope train` defaults); seeds 0-1 (and baseline-s2) are done. Then the LSTM with the
-# dynamics auxiliary loss (issue 33, `--aux dynamics`), seeds 0-2, the same protocol; lane 1
-# also runs issue 31's refill-cost measurement (scripts/refill-cost.sh, ~450k `none` steps). Two
-# lanes, one per core, at nice 19, so they only take what foreground work leaves. Each run
-# resumes from its last checkpoint (every 10,000 steps), so `start` is the same command on the
-# first day and on a fresh machine after a clone. The replay buffers live outside the work tree
-# (~/.cache/gaitscope/replay/<run>), so a kept machine resumes with its buffer; a new machine
-# refills one with the current policy (train --refill, 50,000 transitions) before updating.
+# The evidence runs, two lanes, one per core, at nice 19, so they only take what foreground work
+# leaves. Issue 31's and 33's runs in the paper's world (checkpoints/seeds/) are done. Now issue
+# 47's calibration in the dead-joints world (checkpoints/dead-joints/): the oracle (true damage
+# as input) and the baseline, seed 0 each, 500k steps; the LSTM runs follow once oracle −
+# baseline ≥ 15 points on held-out seeds. Each run resumes from its last checkpoint (every
+# 10,000 steps), so `start` is the same command on the first day and on a fresh machine after a
+# clone. The replay buffers live outside the work tree (~/.cache/gaitscope/replay/<world>/<run>),
+# so a kept machine resumes with its buffer; a new machine refills one with the current policy
+# (train --refill, 50,000 transitions) before updating.
 #
 #   scripts/seed-runs.sh start    # build, then run/resume both lanes in the background
 #   scripts/seed-runs.sh status   # steps done per run, and what is running
 #   scripts/seed-runs.sh stop     # Ctrl-C each trainer (it saves a checkpoint), stop the lanes
 #   scripts/seed-runs.sh pause|cont   # SIGSTOP/SIGCONT the trainers (for benchmarks)
 #
-# Runs live in checkpoints/seeds/<model>-s<seed>; commit everything there but replay.bin. While
-# lanes run, leave the run folders' files to the trainers: no `git stash`, checkout or commit -a
-# (a stash once replaced metrics.jsonl under two trainers; docs/training.md). Commit run state
-# with `stop`, `git add checkpoints/...`, commit, `start`.
+# Runs live in checkpoints/<world folder>/<model>-s<seed>; commit everything there but
+# replay.bin. While lanes run, leave the run folders' files to the trainers: no `git stash`,
+# checkout or commit -a (a stash once replaced metrics.jsonl under two trainers;
+# docs/training.md). Commit run state with `stop`, `git add checkpoints/...`, commit, `start`.
 set -euo pipefail
 
 root=$(cd "$(dirname "$0")/.." && pwd)
 # The build cache .ci/run and make use, outside the work tree.
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/gaitscope/target}"
-seeds_dir="$root/checkpoints/seeds"
+runs_dir="$root/checkpoints"
 state="$root/.deps/seed-runs"   # git-ignored: the binary copy, pids and logs
 replay_root="${GAITSCOPE_REPLAY_ROOT:-$HOME/.cache/gaitscope/replay}"
 steps=500000
 
-# About the same core-hours per lane (LSTM ~5 h a run beside foreground work, window-MLP ~2.6,
-# baseline ~1.7 on one core); the two seed-2 re-runs first, as they replace runs damaged by an
-# empty-buffer resume; the auxiliary-loss runs last.
+# Each lane's runs, as <world folder>/<model>-s<seed> under checkpoints/.
 lane_runs() {
   case $1 in
-    0) echo "encoder-lstm-s2 encoder-lstm-s3 encoder-lstm-s4 baseline-s5 encoder-lstm-aux-s0 encoder-lstm-aux-s2" ;;
-    1) echo "encoder-mlp-s2 baseline-s3 encoder-mlp-s3 refill-cost baseline-s4 encoder-mlp-s4 encoder-mlp-s5 encoder-lstm-s5 encoder-lstm-aux-s1" ;;
+    0) echo "dead-joints/oracle-s0" ;;
+    1) echo "dead-joints/baseline-s0" ;;
   esac
 }
 
-encoder_of() {
-  case $1 in
-    baseline-*) echo none ;;
-    encoder-lstm-*) echo lstm ;;
-    encoder-mlp-*) echo mlp-window ;;
+# The training flags of a fresh run beyond its seed (a resume keeps the run's own).
+flags_of() {
+  local world=${1%%/*} model=${1##*/}
+  local flags=()
+  [ "$world" = seeds ] || flags+=(--world "$world")
+  case $model in
+    oracle-*) flags+=(--privileged damage) ;;
+    baseline-*) flags+=(--encoder none) ;;
+    encoder-lstm-aux-*) flags+=(--encoder lstm --aux dynamics) ;;
+    encoder-lstm-*) flags+=(--encoder lstm) ;;
+    encoder-mlp-*) flags+=(--encoder mlp-window) ;;
   esac
-}
-
-# Training flags beyond the encoder and seed (a fresh run; a resume keeps the run's own).
-extra_of() {
-  case $1 in
-    encoder-lstm-aux-*) echo "--aux dynamics" ;;
-  esac
+  echo "${flags[*]}"
 }
 
 steps_done() {
-  local json="$seeds_dir/$1/checkpoint.json"
+  local json="$runs_dir/$1/checkpoint.json"
   [ -f "$json" ] || { echo 0; return; }
   python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["steps_done"])' "$json"
 }
@@ -64,15 +62,7 @@ run_lane() {
   local core=$1 run dir
   for run in $(lane_runs "$core"); do
     [ -e "$state/stop" ] && return 0
-    if [ "$run" = refill-cost ]; then
-      # Issue 31's measurement of a refilled resume (scripts/refill-cost.sh): resumable too.
-      echo "$(date -u +%FT%TZ) lane $core: refill-cost"
-      GAITSCOPE_BIN="$state/gaitscope" TRAINER_PID_FILE="$state/trainer-$core.pid" \
-        STOP_FILE="$state/stop" bash "$root/scripts/refill-cost.sh" run "$core" ||
-        echo "$(date -u +%FT%TZ) lane $core: refill-cost exited with $?"
-      continue
-    fi
-    dir="$seeds_dir/$run"
+    dir="$runs_dir/$run"
     if [ "$(steps_done "$run")" -ge "$steps" ]; then
       continue
     fi
@@ -80,8 +70,9 @@ run_lane() {
     if [ -f "$dir/checkpoint.json" ]; then
       args=(--resume "$dir")
     else
-      # shellcheck disable=SC2207 # the extra flags are plain words
-      args=(--encoder "$(encoder_of "$run")" --seed "${run##*-s}" --out "$dir" $(extra_of "$run"))
+      mkdir -p "$(dirname "$dir")"
+      # shellcheck disable=SC2207 # the flags are plain words
+      args=($(flags_of "$run") --seed "${run##*-s}" --out "$dir")
     fi
     echo "$(date -u +%FT%TZ) lane $core: ${args[*]}"
     # `exec`-free so the lane survives to start the next run; the trainer's pid is kept for stop.
@@ -112,7 +103,7 @@ case "${1:-status}" in
     if [ -n "$(trainer_pids)" ]; then
       echo "seed runs already going (scripts/seed-runs.sh status)"; exit 1
     fi
-    mkdir -p "$state" "$seeds_dir"
+    mkdir -p "$state" "$runs_dir"
     rm -f "$state/stop"
     # A fresh clone has no libmujoco yet (the build links it): fetch it first, as `make` does.
     "$root/scripts/setup.sh"
@@ -143,8 +134,7 @@ case "${1:-status}" in
   status)
     for core in 0 1; do
       for run in $(lane_runs "$core"); do
-        [ "$run" = refill-cost ] && { echo "refill-cost        (scripts/refill-cost.sh report)"; continue; }
-        printf '%-18s %7s / %s steps\n' "$run" "$(steps_done "$run")" "$steps"
+        printf '%-28s %7s / %s steps\n' "$run" "$(steps_done "$run")" "$steps"
       done
     done
     for pid in $(trainer_pids); do ps -o pid=,etime=,args= -p "$pid" || true; done

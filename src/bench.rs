@@ -250,7 +250,10 @@ pub fn bench_train(
             0
         };
         let mut replay = ReplayBuffer::new(5_000, net.obs_dim, net.act_dim, window_len);
-        let mut task = AntTask(AntEnv::new(GaitConfig::default(), 0)?);
+        let mut task = AntTask::new(
+            AntEnv::new(GaitConfig::default(), 0)?,
+            crate::policy::Privileged::None,
+        );
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let mut obs = task.reset_with_seed(0);
         let mut t = 0;

@@ -17,13 +17,47 @@ pub const MAX_CONTEXT_LEN: usize = 1_024;
 /// Goal coordinates, at most this far from the origin on each axis (m).
 pub const MAX_GOAL_M: f64 = 1_000.0;
 
+/// The paper's world: Ant-v4, a goal 7.1 m away, fatigue under three conditions.
+pub const PAPER_WORLD: &str = "paper";
+
+/// The shipped worlds (`--world NAME`; `worlds/NAME.json`, docs/world.md): a world is a named
+/// config — env settings and a damage distribution — recorded in every checkpoint trained in it.
+pub const WORLDS: [(&str, &str); 2] = [
+    (PAPER_WORLD, include_str!("../worlds/paper.json")),
+    ("dead-joints", include_str!("../worlds/dead-joints.json")),
+];
+
 /// Everything that defines the damaged-Ant task.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(default, deny_unknown_fields)]
 pub struct GaitConfig {
+    /// The world's name (`paper` unless a world file names another); checkpoints record it.
+    #[serde(skip_serializing_if = "is_paper")]
+    pub world: WorldName,
     pub env: EnvConfig,
     pub damage: DamageConfig,
     pub context: ContextConfig,
+}
+
+/// A world's name: `paper` by default.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct WorldName(pub String);
+
+impl Default for WorldName {
+    fn default() -> Self {
+        Self(PAPER_WORLD.to_string())
+    }
+}
+
+impl std::fmt::Display for WorldName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+fn is_paper(name: &WorldName) -> bool {
+    name.0 == PAPER_WORLD
 }
 
 /// Gymnasium Ant-v4 plus the goal task.
@@ -100,21 +134,64 @@ pub enum ConfigError {
     },
     #[error("invalid config: {0}")]
     Invalid(String),
+    #[error("unknown world '{name}' (the shipped worlds: {known}; or a world file, FILE.json)")]
+    UnknownWorld { name: String, known: String },
 }
+
+/// A config file's size, at most (the shipped ones are under 2 KB; `/dev/zero` is refused).
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
 impl GaitConfig {
     /// Reads a JSON config; missing fields take their defaults, unknown fields are an error.
+    /// Only a regular file is read, and at most [`MAX_CONFIG_BYTES`] of it.
     pub fn from_json_file(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        use std::io::Read;
+        let read_err = |source| ConfigError::Read {
             path: path.to_owned(),
             source,
-        })?;
+        };
+        let meta = std::fs::metadata(path).map_err(read_err)?;
+        if !meta.is_file() {
+            return Err(read_err(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "not a regular file",
+            )));
+        }
+        let mut text = String::new();
+        std::fs::File::open(path)
+            .and_then(|f| f.take(MAX_CONFIG_BYTES + 1).read_to_string(&mut text))
+            .map_err(read_err)?;
+        if text.len() as u64 > MAX_CONFIG_BYTES {
+            return Err(ConfigError::Invalid(format!(
+                "{} is larger than the {MAX_CONFIG_BYTES} bytes a config may have",
+                path.display()
+            )));
+        }
         let config: Self = serde_json::from_str(&text).map_err(|source| ConfigError::Parse {
             path: path.to_owned(),
             source,
         })?;
         config.validate()?;
         Ok(config)
+    }
+
+    /// A shipped world by name ([`WORLDS`]), or a world file (a path ending in `.json`).
+    pub fn world(name_or_path: &str) -> Result<Self, ConfigError> {
+        if let Some((_, text)) = WORLDS.iter().find(|(n, _)| *n == name_or_path) {
+            let config: Self = serde_json::from_str(text).map_err(|source| ConfigError::Parse {
+                path: PathBuf::from(format!("worlds/{name_or_path}.json")),
+                source,
+            })?;
+            config.validate()?;
+            return Ok(config);
+        }
+        if name_or_path.ends_with(".json") {
+            return Self::from_json_file(Path::new(name_or_path));
+        }
+        Err(ConfigError::UnknownWorld {
+            name: name_or_path.to_string(),
+            known: WORLDS.map(|(n, _)| n).join(", "),
+        })
     }
 
     /// Rejects values that would make the env meaningless or numerically broken.
@@ -197,6 +274,15 @@ impl GaitConfig {
                 return invalid(format!("damage.scales.{name} must lie in [0, 1], got {s}"));
             }
         }
+        if let Some(dead) = &d.dead {
+            dead.check().map_err(ConfigError::Invalid)?;
+        }
+        let name = &self.world.0;
+        if name.trim().is_empty() || name.len() > 64 || name.chars().any(char::is_control) {
+            return invalid(format!(
+                "world: {name:?} must be a name of 1 to 64 printable characters"
+            ));
+        }
         if !(1..=MAX_CONTEXT_LEN).contains(&self.context.len) {
             return invalid(format!(
                 "context.len must lie in 1..={MAX_CONTEXT_LEN}, got {}",
@@ -267,6 +353,40 @@ mod tests {
         assert_eq!(c.damage.threshold, 10.0);
         assert_eq!(c.damage.alpha, 1.0);
         assert!(serde_json::from_str::<GaitConfig>(r#"{"damage": {"treshold": 10.0}}"#).is_err());
+    }
+
+    #[test]
+    fn shipped_worlds_parse_and_name_themselves() {
+        for (name, _) in WORLDS {
+            let c = GaitConfig::world(name).unwrap();
+            assert_eq!(c.world.0, name);
+        }
+        assert_eq!(GaitConfig::world("paper").unwrap(), GaitConfig::default());
+        let dead = GaitConfig::world("dead-joints").unwrap();
+        assert!(dead.damage.dead.is_some() && !dead.damage.fatigue);
+        let err = GaitConfig::world("moon").unwrap_err().to_string();
+        assert!(err.contains("paper, dead-joints"), "{err}");
+        // The paper world writes no name (its checkpoints read as before); others do.
+        assert!(
+            !serde_json::to_string(&GaitConfig::default())
+                .unwrap()
+                .contains("world")
+        );
+        let text = serde_json::to_string(&dead).unwrap();
+        assert!(text.contains(r#""world":"dead-joints""#), "{text}");
+        assert_eq!(serde_json::from_str::<GaitConfig>(&text).unwrap(), dead);
+    }
+
+    #[test]
+    fn a_world_file_must_be_a_bounded_regular_file() {
+        let err = GaitConfig::from_json_file(Path::new("/dev/zero"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("not a regular file"), "{err}");
+        let err = GaitConfig::world("/nonexistent/w.json")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("/nonexistent/w.json"), "{err}");
     }
 
     #[test]

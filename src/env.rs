@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 
 use crate::config::{ConfigError, GaitConfig};
 use crate::damage::{
-    Condition, ConditionChoice, DamageError, DamageState, Edit, JointOverride, N_ACTUATORS, Push,
-    PushRecord,
+    Condition, ConditionChoice, DamageError, DamageState, DeadOnset, Edit, JointOverride,
+    N_ACTUATORS, Push, PushRecord,
 };
 
 /// Observation: qpos[2..15] (13), qvel (14), goal − torso_xy (2).
@@ -163,6 +163,8 @@ pub struct AntEnv {
     unstable_warnings: i32,
     /// This episode's schedule, when the config names a scenario.
     plan: Option<crate::damage::scenario::ScenarioPlan>,
+    /// This episode's deaths still to come (a world with dead actuators), by onset.
+    dead_plan: Vec<DeadOnset>,
     /// The model's named bodies (id order), what a push may name.
     bodies: Vec<(String, usize)>,
     /// Pushes still to act, and those that acted during the last step.
@@ -198,6 +200,7 @@ pub struct EnvSnapshot {
     last_xy: [f64; 2],
     done: bool,
     plan: Option<crate::damage::scenario::ScenarioPlan>,
+    dead_plan: Vec<DeadOnset>,
     pushes: Pushes,
 }
 
@@ -227,6 +230,9 @@ pub struct EnvSave {
     pub damage: crate::damage::DamageSave,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub pushes: Vec<PendingPush>,
+    /// Deaths the world drew for this episode that have not happened yet.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub dead_plan: Vec<DeadOnset>,
 }
 
 /// A push still to act for `remaining` steps.
@@ -280,6 +286,7 @@ impl AntEnv {
             done: true,
             unstable_warnings: 0,
             plan: None,
+            dead_plan: Vec::new(),
             bodies,
             pushes: Pushes::default(),
         };
@@ -339,6 +346,9 @@ impl AntEnv {
         // the reset noise, so the start state is the same with or without it).
         let mut condition = condition;
         self.plan = None;
+        if !self.config.damage.fatigue {
+            self.damage.set_fatigue_triggers(false);
+        }
         if let Some(scenario) = self.config.damage.scenario.clone() {
             use crate::damage::scenario::FatigueRule;
             match scenario.fatigue {
@@ -353,10 +363,20 @@ impl AntEnv {
             // Checked against this model at construction, so planning cannot fail here.
             self.plan = scenario.plan(seed, &self.joint_map()).ok();
         }
+        // The world's deaths: drawn after the scenario's (the paper's world draws nothing, so
+        // its episodes are as before).
+        self.dead_plan = match &self.config.damage.dead {
+            Some(dead) => {
+                let seed: u64 = self.rng.random();
+                dead.plan(condition, seed, &self.leg_actuators())
+            }
+            None => Vec::new(),
+        };
         self.damage.reset(condition);
         self.pushes = Pushes::default();
         self.steps = 0;
         self.done = false;
+        self.kill_due();
         self.unstable_warnings = self.divergence_warnings();
         self.last_xy = self.xpos_torso_xy();
         self.prev_distance = self.goal_distance();
@@ -375,6 +395,7 @@ impl AntEnv {
             last_xy: self.last_xy,
             done: self.done,
             plan: self.plan.clone(),
+            dead_plan: self.dead_plan.clone(),
             pushes: self.pushes.clone(),
         }
     }
@@ -396,6 +417,7 @@ impl AntEnv {
         self.last_xy = snapshot.last_xy;
         self.done = snapshot.done;
         self.plan = snapshot.plan.clone();
+        self.dead_plan = snapshot.dead_plan.clone();
         self.pushes = snapshot.pushes.clone();
         // Only warnings raised by later steps count as divergence.
         self.unstable_warnings = self.divergence_warnings();
@@ -423,6 +445,7 @@ impl AntEnv {
                     remaining: p.remaining,
                 })
                 .collect(),
+            dead_plan: self.dead_plan.clone(),
         }
     }
 
@@ -450,6 +473,26 @@ impl AntEnv {
         }
         let mut damage = self.damage.clone();
         damage.restore_save(&saved.damage)?;
+        for d in &saved.dead_plan {
+            if d.actuator >= N_ACTUATORS || !(d.scale.is_finite() && (0.0..=1.0).contains(&d.scale))
+            {
+                return Err(EnvError::BadState(format!(
+                    "a pending death names actuator {} at scale {} (actuators 0..{N_ACTUATORS}, scales in [0, 1])",
+                    d.actuator, d.scale
+                )));
+            }
+            if d.step < saved.step {
+                return Err(EnvError::BadState(format!(
+                    "a pending death at step {} lies before the state's step {}",
+                    d.step, saved.step
+                )));
+            }
+        }
+        if saved.dead_plan.windows(2).any(|w| w[0].step > w[1].step) {
+            return Err(EnvError::BadState(
+                "the pending deaths are not in step order".into(),
+            ));
+        }
         let mut active = Vec::with_capacity(saved.pushes.len());
         // Each push was checked as it was read (a `Push` always is); its progress is not.
         for p in &saved.pushes {
@@ -479,6 +522,7 @@ impl AntEnv {
         self.physics.rne_post_constraint();
         self.damage = damage;
         self.plan = None;
+        self.dead_plan = saved.dead_plan.clone();
         self.pushes = Pushes {
             active,
             last_step: Vec::new(),
@@ -556,7 +600,7 @@ impl AntEnv {
         let terminated = !healthy || success;
         let truncated = self.steps >= env.max_episode_steps;
         self.done = terminated || truncated;
-        Ok(StepOutcome {
+        let outcome = StepOutcome {
             step,
             obs: self.observation(),
             reward: RewardTerms {
@@ -577,7 +621,44 @@ impl AntEnv {
             commanded_action: commanded,
             applied_action: applied,
             new_triggers,
-        })
+        };
+        // Deaths due at the next step happen now, so the scales after a step (what the oracle
+        // reads, what the viewer colours) are those the next action is applied with.
+        if !self.done {
+            self.kill_due();
+        }
+        Ok(outcome)
+    }
+
+    /// Kills the actuators whose onset is the coming step (`self.steps`).
+    fn kill_due(&mut self) {
+        while let Some(d) = self.dead_plan.first().copied() {
+            if d.step > self.steps {
+                break;
+            }
+            self.dead_plan.remove(0);
+            // Drawn (or checked, from a saved state) in range, so this cannot fail.
+            let killed = self.damage.kill(self.steps, d.actuator, d.scale);
+            debug_assert!(killed.is_ok(), "{killed:?}");
+        }
+    }
+
+    /// The deaths this episode has still to come (a world with dead actuators).
+    pub fn pending_deaths(&self) -> &[DeadOnset] {
+        &self.dead_plan
+    }
+
+    /// The (hip, ankle) actuator pair of each leg that has exactly two (the Ant's four), in
+    /// [`Self::leg_names`]' order: what can die as a whole leg.
+    pub fn leg_actuators(&self) -> Vec<[usize; 2]> {
+        (0..N_LEGS)
+            .filter_map(|leg| {
+                let of_leg: Vec<usize> = (0..N_ACTUATORS)
+                    .filter(|&a| self.leg_of_actuator[a] == leg)
+                    .collect();
+                <[usize; 2]>::try_from(of_leg).ok()
+            })
+            .collect()
     }
 
     /// Changes a joint by hand; it takes effect on the next step and is logged as an event.

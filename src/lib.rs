@@ -13,6 +13,7 @@ pub mod env;
 pub mod eval;
 pub mod explain;
 pub mod lane;
+pub mod palette;
 pub mod plots;
 pub mod policy;
 pub mod probe;

@@ -102,7 +102,7 @@ fn first_probe_flip(seed: u64) -> usize {
     let mut before: Option<Vec<f64>> = None;
     for t in 0..LIMIT {
         let d = policy
-            .act_one(&obs, &window, ActionMode::Deterministic, None)
+            .act_one(&obs, &[1.0; 8], &window, ActionMode::Deterministic, None)
             .unwrap();
         let p = probe.joint_damage_probabilities(d.z.as_deref().unwrap());
         if let Some(b) = &before

@@ -92,6 +92,7 @@ fn options(encoder: EncoderKind, steps: u64, out: std::path::PathBuf) -> TrainOp
             hidden: vec![32, 32],
             window_mlp_hidden: vec![16],
             share_encoder: false,
+            privileged: gaitscope::policy::Privileged::None,
         },
         sac: SacConfig {
             batch_size: 64,
@@ -127,7 +128,7 @@ fn evaluate(dir: &std::path::Path, echo: Echo) -> f64 {
         window.clear();
         loop {
             let action = policy
-                .act_one(&obs, &window, ActionMode::Deterministic, None)
+                .act_one(&obs, &[1.0; 8], &window, ActionMode::Deterministic, None)
                 .unwrap()
                 .action;
             let step = task.step(&action).unwrap();

@@ -690,6 +690,7 @@ fn state_text(state: JointState) -> (&'static str, Color32) {
         JointState::Healthy => ("healthy", Color32::from_rgb(80, 170, 90)),
         JointState::Triggered => ("triggered", Color32::from_rgb(220, 60, 50)),
         JointState::Manual => ("manual", Color32::from_rgb(160, 90, 220)),
+        JointState::Dead => ("dead", Color32::from_rgb(110, 110, 120)),
     }
 }
 
@@ -706,6 +707,7 @@ fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64, state: JointStat
         JointState::Healthy => Color32::from_rgb(230, 170, 40),
         JointState::Triggered => Color32::from_rgb(210, 60, 50),
         JointState::Manual => Color32::from_rgb(150, 80, 210),
+        JointState::Dead => Color32::from_rgb(110, 110, 120),
     };
     let mut filled = rect;
     filled.set_width(rect.width() * frac);

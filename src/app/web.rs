@@ -873,6 +873,7 @@ fn state_name(state: JointState) -> &'static str {
         JointState::Healthy => "healthy",
         JointState::Triggered => "triggered",
         JointState::Manual => "manual",
+        JointState::Dead => "dead",
     }
 }
 

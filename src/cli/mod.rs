@@ -20,6 +20,10 @@ use gaitscope::GaitConfig;
 /// Options shared by every command that builds an env.
 #[derive(Args)]
 pub(crate) struct EnvArgs {
+    /// A shipped world (paper, the default; dead-joints: actuators die over a longer walk;
+    /// docs/world.md) or a world file. A checkpoint runs in its own world whatever this says.
+    #[arg(long, value_name = "NAME|FILE", conflicts_with = "config")]
+    pub(crate) world: Option<String>,
     /// JSON config (any subset of the fields; the rest keep their defaults).
     #[arg(long, value_name = "FILE")]
     pub(crate) config: Option<PathBuf>,
@@ -36,13 +40,13 @@ impl EnvArgs {
     /// A `--config`/`--model` on a checkpoint command: the checkpoint runs in the task it was
     /// trained in (lane::Actor::world), so say which of the file's sections go unused.
     pub(crate) fn note_unused(&self, actor: &gaitscope::lane::Actor, requested: &GaitConfig) {
-        if self.config.is_none() && self.model.is_none() {
+        if self.config.is_none() && self.model.is_none() && self.world.is_none() {
             return;
         }
         let unused = actor.unused_settings(requested);
         if !unused.is_empty() {
             eprintln!(
-                "note: {} runs in the task it was trained in: the {} settings of --config/--model \
+                "note: {} runs in the task it was trained in: the {} settings of --world/--config/--model \
                  are not used (only the condition, scenario and step limit apply)",
                 actor.label(),
                 unused.join(", ")
@@ -51,9 +55,10 @@ impl EnvArgs {
     }
 
     pub(crate) fn load(&self) -> Result<GaitConfig> {
-        let mut config = match &self.config {
-            Some(path) => GaitConfig::from_json_file(path)?,
-            None => GaitConfig::default(),
+        let mut config = match (&self.world, &self.config) {
+            (Some(world), _) => GaitConfig::world(world)?,
+            (None, Some(path)) => GaitConfig::from_json_file(path)?,
+            (None, None) => GaitConfig::default(),
         };
         if let Some(model) = &self.model {
             config.env.model_path = Some(model.clone());

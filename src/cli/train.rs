@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use gaitscope::policy::{AuxKind, EncoderKind};
+use gaitscope::policy::{AuxKind, EncoderKind, Privileged};
 use gaitscope::train::{self, sac::UpdatePath};
 
 use super::EnvArgs;
@@ -53,15 +53,23 @@ pub(crate) struct TrainArgs {
     /// One encoder for actor and critic (SB3's share_features_extractor).
     #[arg(long)]
     share_encoder: bool,
+    /// Privileged inputs for an oracle: damage gives the memoryless model the true per-joint
+    /// torque scales beside the observation (a measured ceiling, never a deployable policy);
+    /// implies --encoder none. With --resume it must match the run's, and may be left out.
+    #[arg(long, value_enum, value_name = "damage")]
+    privileged: Option<PrivilegedArg>,
     /// Size of the encoder's latent z (default 32, the paper's); the window length is the
     /// config's `context.len`.
     #[arg(long)]
     z_dim: Option<usize>,
-    #[arg(long)]
+    /// Transitions per gradient update (default 256, SB3's).
+    #[arg(long, value_name = "N")]
     batch_size: Option<usize>,
-    #[arg(long)]
+    /// Replay buffer capacity in transitions (default 1,000,000, SB3's).
+    #[arg(long, value_name = "N")]
     buffer_size: Option<usize>,
-    #[arg(long)]
+    /// Env steps of uniformly random actions, and no updates, before learning (default 100).
+    #[arg(long, value_name = "N")]
     learning_starts: Option<usize>,
     /// No progress bar (logs still go to metrics.jsonl).
     #[arg(long)]
@@ -83,6 +91,21 @@ pub(crate) struct TrainArgs {
     aux_weight: Option<f64>,
     #[command(flatten)]
     env: EnvArgs,
+}
+
+/// `--privileged`: the CLI's name for [`gaitscope::policy::Privileged`].
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum PrivilegedArg {
+    /// The true per-joint torque scales (8 values).
+    Damage,
+}
+
+impl From<PrivilegedArg> for Privileged {
+    fn from(p: PrivilegedArg) -> Self {
+        match p {
+            PrivilegedArg::Damage => Privileged::Damage,
+        }
+    }
 }
 
 #[derive(Args)]
@@ -111,11 +134,42 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
         Some(dir) => requested.check_against(dir)?.sac.aux,
         None => requested.fresh_aux()?,
     };
+    let privileged = match &args.resume {
+        Some(dir) => {
+            let found = gaitscope::policy::checkpoint::read_meta(dir)?
+                .net
+                .privileged;
+            if let Some(p) = args.privileged
+                && Privileged::from(p) != found
+            {
+                bail!(
+                    "{} is a run with privileged inputs '{found}'; --privileged {} does not match",
+                    dir.display(),
+                    Privileged::from(p)
+                );
+            }
+            found
+        }
+        None => args.privileged.map_or(Privileged::None, Privileged::from),
+    };
     let encoder = match &args.resume {
         Some(dir) => gaitscope::policy::checkpoint::read_meta(dir)?.net.encoder,
+        None if privileged != Privileged::None => match args.encoder {
+            None | Some(EncoderKind::None) => EncoderKind::None,
+            Some(other) => bail!(
+                "--privileged {privileged} makes the memoryless oracle (encoder none); it takes \
+                 no --encoder {other} (an oracle that reads the true damage needs no memory)"
+            ),
+        },
         None => args.encoder.unwrap_or(EncoderKind::Lstm),
     };
     let mut opts = train::ant_options(encoder, args.steps, args.seed, out.clone());
+    if privileged != Privileged::None {
+        opts.net = gaitscope::policy::NetConfig {
+            context_len: opts.net.context_len,
+            ..gaitscope::policy::NetConfig::ant_oracle(privileged)
+        };
+    }
     opts.env = args.env.load()?;
     // The config's window length is the one the encoder reads and the replay buffer stores.
     opts.net.context_len = opts.env.context.len;

@@ -9,10 +9,12 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
 
+mod dead;
 mod push;
 pub mod scenario;
 mod settings;
 
+pub use dead::{DeadActuators, DeadCounts, DeadOnset, DeadUnit, MAX_DEAD_UNITS};
 pub use push::{MAX_PUSH_NEWTONS, MAX_PUSH_STEPS, Push, PushError, PushRecord};
 pub use settings::{ConditionScales, DamageConfig};
 
@@ -106,6 +108,9 @@ pub enum DamageEventKind {
     Trigger,
     /// A person changed the joint.
     Override { change: JointOverride },
+    /// The world's dead-actuator draw killed the joint ([`DeadActuators`]): from this step on
+    /// it keeps `scale` of its torque.
+    Dead,
 }
 
 /// One entry of the damage log.
@@ -139,6 +144,7 @@ impl DamageEvent {
                 "{joint} triggered at fatigue {:.1}; scale → {}",
                 self.fatigue, self.scale
             ),
+            DamageEventKind::Dead => format!("{joint} died; scale → {}", self.scale),
             DamageEventKind::Override { change } => match change {
                 JointOverride::SetScale(s) => format!("{joint} scale → {s} (manual)"),
                 JointOverride::FailNow | JointOverride::FailTo(_) => {
@@ -163,6 +169,8 @@ pub enum JointState {
     Triggered,
     /// Scale pinned by hand.
     Manual,
+    /// Killed by the world's dead-actuator draw.
+    Dead,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -361,6 +369,13 @@ pub struct DamageSave {
     pub manual: [bool; N_ACTUATORS],
     pub scale: [f64; N_ACTUATORS],
     pub fatigue_triggers: bool,
+    /// Joints the world's dead-actuator draw killed (absent in states saved before that kind).
+    #[serde(default, skip_serializing_if = "none_set")]
+    pub dead: [bool; N_ACTUATORS],
+}
+
+fn none_set(flags: &[bool; N_ACTUATORS]) -> bool {
+    flags.iter().all(|&f| !f)
 }
 
 /// Fatigue, triggers and torque scales of one episode.
@@ -372,6 +387,8 @@ pub struct DamageState {
     fatigue: [f64; N_ACTUATORS],
     triggered: [bool; N_ACTUATORS],
     manual: [bool; N_ACTUATORS],
+    /// Killed by the world's dead-actuator draw: fatigue triggers leave their scale alone.
+    dead: [bool; N_ACTUATORS],
     scale: [f64; N_ACTUATORS],
     events: Vec<DamageEvent>,
     /// Whether fatigue reaching τ triggers a joint (off in the live viewer's manual condition,
@@ -389,6 +406,7 @@ impl DamageState {
             fatigue: [0.0; N_ACTUATORS],
             triggered: [false; N_ACTUATORS],
             manual: [false; N_ACTUATORS],
+            dead: [false; N_ACTUATORS],
             scale: [1.0; N_ACTUATORS],
             events: Vec::new(),
             fatigue_triggers: true,
@@ -410,6 +428,7 @@ impl DamageState {
         self.fatigue = [0.0; N_ACTUATORS];
         self.triggered = [false; N_ACTUATORS];
         self.manual = [false; N_ACTUATORS];
+        self.dead = [false; N_ACTUATORS];
         self.scale = [1.0; N_ACTUATORS];
         self.events.clear();
     }
@@ -423,6 +442,7 @@ impl DamageState {
             manual: self.manual,
             scale: self.scale,
             fatigue_triggers: self.fatigue_triggers,
+            dead: self.dead,
         }
     }
 
@@ -448,6 +468,7 @@ impl DamageState {
         self.manual = saved.manual;
         self.scale = saved.scale;
         self.fatigue_triggers = saved.fatigue_triggers;
+        self.dead = saved.dead;
         Ok(())
     }
 
@@ -471,7 +492,7 @@ impl DamageState {
             self.fatigue[i] += alpha * commanded[i].abs() + beta * contact_norms[i];
             if self.fatigue_triggers && !self.triggered[i] && self.fatigue[i] >= threshold {
                 self.triggered[i] = true;
-                if !self.manual[i] {
+                if !self.manual[i] && !self.dead[i] {
                     self.scale[i] = self.condition.scale(&self.config.scales);
                 }
                 self.push_event(step, i, DamageEventKind::Trigger);
@@ -509,11 +530,12 @@ impl DamageState {
                     return Err(DamageError::BadScale(s));
                 }
                 self.manual[actuator] = true;
+                self.dead[actuator] = false;
                 self.scale[actuator] = s;
             }
             JointOverride::FailNow => {
                 self.triggered[actuator] = true;
-                if !self.manual[actuator] {
+                if !self.manual[actuator] && !self.dead[actuator] {
                     self.scale[actuator] = self.condition.scale(&self.config.scales);
                 }
             }
@@ -523,11 +545,13 @@ impl DamageState {
                 }
                 self.triggered[actuator] = true;
                 self.manual[actuator] = false;
+                self.dead[actuator] = false;
                 self.scale[actuator] = s;
             }
             JointOverride::Heal => {
                 self.triggered[actuator] = false;
                 self.manual[actuator] = false;
+                self.dead[actuator] = false;
                 self.scale[actuator] = 1.0;
                 self.fatigue[actuator] = 0.0;
             }
@@ -537,6 +561,26 @@ impl DamageState {
         if let Some(e) = self.events.last_mut() {
             e.source = source.map(str::to_string);
         }
+        Ok(())
+    }
+
+    /// Kills an actuator before env step `step` runs (the world's dead-actuator draw): it keeps
+    /// `scale` of its torque from that step on, whatever fatigue does; only a person's edit
+    /// (heal, a new scale) revives it.
+    pub fn kill(&mut self, step: usize, actuator: usize, scale: f64) -> Result<(), DamageError> {
+        if actuator >= N_ACTUATORS {
+            return Err(DamageError::NoSuchActuator(actuator));
+        }
+        if !(scale.is_finite() && (0.0..=1.0).contains(&scale)) {
+            return Err(DamageError::BadScale(scale));
+        }
+        // Triggered too: whatever reads "this joint lost torque" (probe labels, the record's
+        // damaged joints) reads a death as it reads a fatigue trigger.
+        self.dead[actuator] = true;
+        self.triggered[actuator] = true;
+        self.manual[actuator] = false;
+        self.scale[actuator] = scale;
+        self.push_event(step, actuator, DamageEventKind::Dead);
         Ok(())
     }
 
@@ -590,8 +634,14 @@ impl DamageState {
     pub fn n_triggered(&self) -> usize {
         self.triggered.iter().filter(|&&t| t).count()
     }
+    /// Joints the world's dead-actuator draw killed (and no person revived).
+    pub fn dead(&self) -> &[bool; N_ACTUATORS] {
+        &self.dead
+    }
     pub fn joint_state(&self, actuator: usize) -> JointState {
-        if self.manual[actuator] {
+        if self.dead[actuator] {
+            JointState::Dead
+        } else if self.manual[actuator] {
             JointState::Manual
         } else if self.triggered[actuator] {
             JointState::Triggered
@@ -609,6 +659,7 @@ impl DamageState {
             .iter()
             .filter_map(|e| match e.kind {
                 DamageEventKind::Trigger => Some(e.step + 1),
+                DamageEventKind::Dead => Some(e.step),
                 DamageEventKind::Override {
                     change: JointOverride::FailNow | JointOverride::FailTo(_),
                 } => Some(e.step),

@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::ConditionChoice;
+use super::{ConditionChoice, DeadActuators};
 
 /// The fatigue model (the paper's "DamageWrapper").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -22,6 +22,18 @@ pub struct DamageConfig {
     /// Scripted damage on top (or instead) of fatigue ([`super::scenario`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub scenario: Option<super::scenario::Scenario>,
+    /// Whether fatigue reaching the threshold triggers a joint (fatigue accumulates either
+    /// way). A world whose damage is dead actuators alone turns it off; a scenario's own rule
+    /// wins over it.
+    #[serde(skip_serializing_if = "is_true")]
+    pub fatigue: bool,
+    /// Actuators that die per episode ([`DeadActuators`]); absent in the paper's world.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dead: Option<DeadActuators>,
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 impl Default for DamageConfig {
@@ -33,6 +45,8 @@ impl Default for DamageConfig {
             scales: ConditionScales::default(),
             condition: ConditionChoice::Random,
             scenario: None,
+            fatigue: true,
+            dead: None,
         }
     }
 }

@@ -167,6 +167,9 @@ impl Actor {
     pub fn unused_settings(&self, requested: &GaitConfig) -> Vec<&'static str> {
         let world = self.world(requested);
         let mut unused = Vec::new();
+        if world.world != requested.world {
+            unused.push("world");
+        }
         if world.env != requested.env {
             unused.push("env");
         }
@@ -193,6 +196,7 @@ impl Actor {
         &self,
         step: usize,
         obs: &Observation,
+        scales: &[f64; N_ACTUATORS],
         window: &ContextWindow,
         rng: &mut ChaCha8Rng,
         mode: ActionMode,
@@ -204,7 +208,7 @@ impl Actor {
                         .map(|_| rng.sample(StandardNormal))
                         .collect()
                 });
-                let d = policy.act_one(obs, window, mode, noise.as_deref())?;
+                let d = policy.act_one(obs, scales, window, mode, noise.as_deref())?;
                 Ok((d.action, d.z))
             }
             Actor::Builtin(p) => Ok((p.act(rng).to_vec(), None)),
@@ -308,6 +312,7 @@ impl StepRecord {
 /// hold a bare [`Policy`] (eval's batched lanes).
 pub fn checkpoint_world(trained: &GaitConfig, requested: &GaitConfig) -> GaitConfig {
     GaitConfig {
+        world: trained.world.clone(),
         damage: DamageConfig {
             condition: requested.damage.condition,
             scenario: requested.damage.scenario.clone(),
@@ -428,6 +433,7 @@ impl Lane {
         let (action, z) = actor.decide(
             self.env.steps(),
             &self.run.obs,
+            self.env.damage().scale(),
             &self.run.window,
             &mut self.run.rng,
             mode,
@@ -526,9 +532,11 @@ pub fn advance_lockstep(
     match (actor.policy(), mode) {
         (Some(policy), ActionMode::Deterministic) => {
             let uses_window = policy.net().encoder.uses_window();
+            let privileged = policy.net().privileged;
             let (mut obs, mut windows) = (Vec::new(), Vec::new());
             for &i in &active {
-                obs.extend(lanes[i].run.obs.iter().map(|&v| v as f32));
+                let lane = &lanes[i];
+                privileged.input(&lane.run.obs, lane.env.damage().scale(), &mut obs);
                 if uses_window {
                     windows.extend_from_slice(lanes[i].run.window.as_slice());
                 }

@@ -453,6 +453,13 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, CheckpointError> {
             ),
         });
     }
+    // An oracle's input size follows from its privileged inputs; a hand-edited file that
+    // disagrees would feed the network the wrong values.
+    if meta.net.privileged != super::Privileged::None {
+        meta.net
+            .check_inputs()
+            .map_err(|reason| CheckpointError::BadMeta { path, reason })?;
+    }
     Ok(meta)
 }
 

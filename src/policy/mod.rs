@@ -64,11 +64,65 @@ impl std::fmt::Display for EncoderKind {
     }
 }
 
+/// Inputs a model reads beside the observation that no deployed robot has: an oracle's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Privileged {
+    /// The observation only (every model but an oracle).
+    #[default]
+    None,
+    /// The true torque scale of each actuator, the one the next action is applied with (8
+    /// values after the 29 of the observation): the damage oracle, a memoryless measured
+    /// ceiling (RMA's expert).
+    Damage,
+}
+
+impl Privileged {
+    pub fn name(self) -> &'static str {
+        match self {
+            Privileged::None => "none",
+            Privileged::Damage => "damage",
+        }
+    }
+
+    /// Values it adds to the observation.
+    pub fn dim(self) -> usize {
+        match self {
+            Privileged::None => 0,
+            Privileged::Damage => crate::damage::N_ACTUATORS,
+        }
+    }
+
+    fn is_none(&self) -> bool {
+        *self == Privileged::None
+    }
+
+    /// The model's input for one env: the observation, then (an oracle's) the true scales.
+    pub fn input(
+        self,
+        obs: &[f64],
+        scales: &[f64; crate::damage::N_ACTUATORS],
+        out: &mut Vec<f32>,
+    ) {
+        out.extend(obs.iter().map(|&v| v as f32));
+        if self == Privileged::Damage {
+            out.extend(scales.iter().map(|&v| v as f32));
+        }
+    }
+}
+
+impl std::fmt::Display for Privileged {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Shapes of a model; stored in `checkpoint.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NetConfig {
     pub encoder: EncoderKind,
+    /// The actor's and critics' input: the env's observation plus [`Self::privileged`]'s.
     pub obs_dim: usize,
     pub act_dim: usize,
     /// Window length k (ignored by `none`).
@@ -79,6 +133,9 @@ pub struct NetConfig {
     /// Hidden sizes of the `mlp-window` encoder.
     pub window_mlp_hidden: Vec<usize>,
     pub share_encoder: bool,
+    /// An oracle's privileged inputs (absent from checkpoint.json for every other model).
+    #[serde(default, skip_serializing_if = "Privileged::is_none")]
+    pub privileged: Privileged,
 }
 
 impl NetConfig {
@@ -93,7 +150,40 @@ impl NetConfig {
             hidden: vec![256, 256],
             window_mlp_hidden: vec![64],
             share_encoder: false,
+            privileged: Privileged::None,
         }
+    }
+
+    /// The paper's memoryless model given `privileged` inputs too (an oracle).
+    pub fn ant_oracle(privileged: Privileged) -> Self {
+        Self {
+            obs_dim: crate::env::OBS_DIM + privileged.dim(),
+            privileged,
+            ..Self::ant(EncoderKind::None)
+        }
+    }
+
+    /// Why this shape cannot be a gaitscope model of the Ant's task, if it cannot: privileged
+    /// inputs only for the memoryless model (an oracle needs no memory), and an observation of
+    /// exactly the task's size plus theirs.
+    pub fn check_inputs(&self) -> std::result::Result<(), String> {
+        if self.privileged != Privileged::None && self.encoder != EncoderKind::None {
+            return Err(format!(
+                "privileged inputs ({}) are for the memoryless oracle (encoder none), not encoder {}",
+                self.privileged, self.encoder
+            ));
+        }
+        let want = crate::env::OBS_DIM + self.privileged.dim();
+        if self.obs_dim != want {
+            return Err(format!(
+                "obs_dim {} does not fit the task: {} observation values + {} privileged ({}) = {want}",
+                self.obs_dim,
+                crate::env::OBS_DIM,
+                self.privileged.dim(),
+                self.privileged
+            ));
+        }
+        Ok(())
     }
 
     pub fn entry_dim(&self) -> usize {
@@ -580,16 +670,19 @@ impl Policy {
             .decide(&self.meta.net, &self.device, obs, window, mode, noise)
     }
 
-    /// One decision for a single env, from its observation and context window (the window is
-    /// ignored by the memoryless baseline).
+    /// One decision for a single env, from its observation, the true torque scales (read by an
+    /// oracle alone) and the context window (ignored by the memoryless models).
     pub fn act_one(
         &self,
         obs: &[f64],
+        scales: &[f64; crate::damage::N_ACTUATORS],
         window: &crate::window::ContextWindow,
         mode: ActionMode,
         noise: Option<&[f32]>,
     ) -> Result<Decision> {
-        let obs: Vec<f32> = obs.iter().map(|&v| v as f32).collect();
+        let mut input = Vec::with_capacity(self.meta.net.obs_dim);
+        self.meta.net.privileged.input(obs, scales, &mut input);
+        let obs = input;
         let window = self
             .meta
             .net

@@ -571,6 +571,7 @@ pub fn damage_color(state: JointState, fatigue: f64, threshold: f64) -> [u8; 4] 
     match state {
         JointState::Triggered => [220, 40, 40, 255],
         JointState::Manual => [150, 70, 200, 255],
+        JointState::Dead => [70, 70, 80, 255],
         JointState::Healthy => {
             let f = ((fatigue / threshold).clamp(0.0, 1.0) * 10.0).floor() as f32 / 10.0;
             let lerp = |a: f32, b: f32| (a + (b - a) * f) as u8;
@@ -1060,6 +1061,7 @@ impl AntLogger {
         for e in &record.events {
             let level = match &e.kind {
                 DamageEventKind::Trigger => rerun::TextLogLevel::WARN,
+                DamageEventKind::Dead => rerun::TextLogLevel::WARN,
                 DamageEventKind::Override { .. } => rerun::TextLogLevel::INFO,
             };
             let text = format!("step {}: {}", self.now_step, e.describe());

@@ -36,7 +36,7 @@ use crate::env::{AntEnv, EnvError};
 use crate::policy::checkpoint::{
     self, CheckpointError, TrainingRecord, load_expected_tensors, safetensors_bytes, write_atomic,
 };
-use crate::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
+use crate::policy::{EncoderKind, NetConfig, Privileged, SacConfig, SacModel};
 use crate::window::ContextWindow;
 use adam::Adam;
 use replay::{Batch, ReplayBuffer, Transition};
@@ -130,32 +130,53 @@ pub trait Task {
     fn step(&mut self, action: &[f64]) -> Result<TaskStep, TrainError>;
 }
 
-/// The damaged Ant as a training task.
-pub struct AntTask(pub AntEnv);
+/// The damaged Ant as a training task; an oracle's observations carry its privileged inputs.
+pub struct AntTask {
+    pub env: AntEnv,
+    privileged: Privileged,
+}
+
+impl AntTask {
+    pub fn new(env: AntEnv, privileged: Privileged) -> Self {
+        Self { env, privileged }
+    }
+
+    /// The model's input after a reset or a step: the observation (and an oracle's scales, as
+    /// [`Privileged::input`] builds it for every lane).
+    fn input(&self, obs: &crate::env::Observation) -> Vec<f64> {
+        let mut v = obs.to_vec();
+        if self.privileged == Privileged::Damage {
+            v.extend_from_slice(self.env.damage().scale());
+        }
+        v
+    }
+}
 
 impl Task for AntTask {
     fn obs_dim(&self) -> usize {
-        crate::env::OBS_DIM
+        crate::env::OBS_DIM + self.privileged.dim()
     }
     fn act_dim(&self) -> usize {
         crate::env::ACT_DIM
     }
     fn reset_with_seed(&mut self, seed: u64) -> Vec<f64> {
-        self.0.reset_with_seed(seed).to_vec()
+        let obs = self.env.reset_with_seed(seed);
+        self.input(&obs)
     }
     fn reset(&mut self) -> Vec<f64> {
-        self.0.reset().to_vec()
+        let obs = self.env.reset();
+        self.input(&obs)
     }
     fn step(&mut self, action: &[f64]) -> Result<TaskStep, TrainError> {
-        let out = self.0.step(action)?;
+        let out = self.env.step(action)?;
         Ok(TaskStep {
-            obs: out.obs.to_vec(),
+            obs: self.input(&out.obs),
             reward: out.reward.total,
             terminated: out.terminated,
             truncated: out.truncated,
             success: out.success,
-            triggered_joints: self.0.damage().n_triggered(),
-            condition: Some(self.0.condition()),
+            triggered_joints: self.env.damage().n_triggered(),
+            condition: Some(self.env.condition()),
         })
     }
 }
@@ -259,14 +280,19 @@ pub fn train_ant(
         env_config = checkpoint::read_meta(&opts.out)?.env;
     }
     let env = AntEnv::new(env_config, opts.seed)?;
-    train(&mut AntTask(env), opts, resume, stop)
+    let privileged = if resume {
+        checkpoint::read_meta(&opts.out)?.net.privileged
+    } else {
+        opts.net.privileged
+    };
+    train(&mut AntTask::new(env, privileged), opts, resume, stop)
 }
 
 /// What a fresh `train_ant` would refuse, found without training or writing anything (the env
 /// is built once, so a bad model path or config fails here too).
 pub fn check_ant(opts: &TrainOptions) -> Result<(), TrainError> {
     let env = AntEnv::new(opts.env.clone(), opts.seed)?;
-    validate_fresh(opts, &AntTask(env))
+    validate_fresh(opts, &AntTask::new(env, opts.net.privileged))
 }
 
 /// The training loop, for any [`Task`].
@@ -650,6 +676,9 @@ fn validate_options(opts: &TrainOptions) -> Result<(), TrainError> {
         return bad(format!("batch size {} is above 65536", sac.batch_size));
     }
     let net = &opts.net;
+    if net.privileged != Privileged::None {
+        net.check_inputs().map_err(TrainError::Options)?;
+    }
     if net.context_len == 0 || net.z_dim == 0 || net.hidden.contains(&0) {
         return bad("context length, z size and hidden sizes must be at least 1".into());
     }
@@ -1433,6 +1462,7 @@ mod tests {
                 hidden: vec![8, 8],
                 window_mlp_hidden: vec![8],
                 share_encoder: false,
+                privileged: Privileged::None,
             },
             sac: SacConfig {
                 batch_size: 16,

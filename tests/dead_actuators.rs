@@ -1,0 +1,336 @@
+//! Dead actuators and the damage oracle (issue 47), against real MuJoCo: a dead actuator applies
+//! exactly zero torque from its onset (bit-checked against a bare env told the same by hand);
+//! the deaths survive snapshots, forks and saved states; the oracle's extra inputs are the true
+//! scales at every step and never reach another model.
+
+use gaitscope::config::GaitConfig;
+use gaitscope::damage::{DamageEventKind, JointState, N_ACTUATORS};
+use gaitscope::env::{ACT_DIM, AntEnv, OBS_DIM};
+use gaitscope::lane::{Actor, Lane};
+use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, Privileged, SacConfig, SacModel};
+use gaitscope::{Condition, ConditionChoice, JointOverride};
+use rand::{Rng, SeedableRng};
+
+fn dead_world(condition: Condition) -> GaitConfig {
+    let mut c = GaitConfig::world("dead-joints").expect("shipped world");
+    c.damage.condition = ConditionChoice::Fixed(condition);
+    c.env.max_episode_steps = 200;
+    c
+}
+
+fn actions(n: usize, seed: u64) -> Vec<[f64; ACT_DIM]> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    (0..n)
+        .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..=1.0)))
+        .collect()
+}
+
+/// An episode with at least one death, found by seed (about half of mild episodes' single
+/// unit is a leg; every one has a death).
+fn episode_with_deaths(world: &GaitConfig) -> (AntEnv, u64) {
+    for seed in 0..50 {
+        let mut env = AntEnv::new(world.clone(), 0).unwrap();
+        env.reset_with_seed(seed);
+        if !env.pending_deaths().is_empty() && env.pending_deaths()[0].step > 0 {
+            return (env, seed);
+        }
+    }
+    panic!("no episode with a death after step 0 in 50 seeds");
+}
+
+#[test]
+fn a_dead_actuator_applies_zero_torque_from_its_onset_exactly_as_a_bare_env_told_by_hand() {
+    let world = dead_world(Condition::Severe);
+    let (mut env, seed) = episode_with_deaths(&world);
+    let deaths = env.pending_deaths().to_vec();
+    // The bare env: the same goal and no fatigue, no deaths of its own; the same reset draws
+    // (the world's draw comes after the reset noise, so the start state is the same).
+    let mut bare_config = world.clone();
+    bare_config.damage.dead = None;
+    let mut bare = AntEnv::new(bare_config, 0).unwrap();
+    bare.reset_with_seed(seed);
+    assert_eq!(env.qpos(), bare.qpos());
+
+    let acts = actions(150, 5);
+    for (t, a) in acts.iter().enumerate() {
+        if env.is_done() {
+            break;
+        }
+        // By hand, before the step the death is due at: the same scale pinned.
+        for d in deaths.iter().filter(|d| d.step == t) {
+            bare.apply_override(d.actuator, JointOverride::SetScale(d.scale))
+                .unwrap();
+        }
+        // The env's scales after the previous step are those this step applies.
+        let scales = *env.damage().scale();
+        let out = env.step(a).unwrap();
+        let bare_out = bare.step(a).unwrap();
+        assert_eq!(env.qpos(), bare.qpos(), "step {t}: physics differs");
+        assert_eq!(out.applied_action, bare_out.applied_action, "step {t}");
+        for i in 0..N_ACTUATORS {
+            assert_eq!(out.applied_action[i], scales[i] * a[i].clamp(-1.0, 1.0));
+            if let Some(d) = deaths.iter().find(|d| d.actuator == i) {
+                if t >= d.step {
+                    assert_eq!(out.applied_action[i], 0.0, "step {t}: dead actuator {i}");
+                } else {
+                    assert_eq!(out.applied_action[i], a[i].clamp(-1.0, 1.0));
+                }
+            }
+        }
+    }
+    // Each death is one event of its own kind, at its onset step, and the joint reads Dead.
+    let dead_events: Vec<_> = env
+        .damage()
+        .events()
+        .iter()
+        .filter(|e| e.kind == DamageEventKind::Dead)
+        .collect();
+    // The deaths whose onset the episode reached (random actions may end it early).
+    let happened: Vec<_> = deaths.iter().filter(|d| d.step < env.steps()).collect();
+    assert!(!happened.is_empty(), "the episode reached a death");
+    assert_eq!(dead_events.len(), happened.len());
+    for (e, d) in dead_events.iter().zip(happened) {
+        assert_eq!((e.step, e.actuator, e.scale), (d.step, d.actuator, 0.0));
+        assert!(e.describe().contains("died"), "{}", e.describe());
+        assert_eq!(env.damage().joint_state(d.actuator), JointState::Dead);
+    }
+    assert_eq!(env.damage().damage_onset(), Some(deaths[0].step));
+    // No fatigue trigger in this world, however long the walk.
+    assert!(
+        env.damage()
+            .events()
+            .iter()
+            .all(|e| e.kind != DamageEventKind::Trigger)
+    );
+}
+
+#[test]
+fn the_death_count_follows_the_condition() {
+    for (condition, units) in [
+        (Condition::Healthy, 0..=0),
+        (Condition::Mild, 1..=2),
+        (Condition::Severe, 2..=4),
+    ] {
+        let mut env = AntEnv::new(dead_world(condition), 0).unwrap();
+        for seed in 0..30 {
+            env.reset_with_seed(seed);
+            let n = env.pending_deaths().len() + env.damage().dead().iter().filter(|&&d| d).count();
+            assert!(units.contains(&n), "{condition}: {n} deaths");
+        }
+    }
+    // The paper's world draws none and keeps its fatigue.
+    let mut paper = AntEnv::new(GaitConfig::default(), 0).unwrap();
+    paper.reset_with_seed(3);
+    assert!(paper.pending_deaths().is_empty() && paper.damage().fatigue_triggers());
+}
+
+#[test]
+fn deaths_to_come_survive_snapshots_forks_and_saved_states() {
+    let world = dead_world(Condition::Severe);
+    let (mut env, _) = episode_with_deaths(&world);
+    let first = env.pending_deaths()[0];
+    let acts = actions(first.step + 20, 9);
+    // Stop one step before the first death.
+    for a in &acts[..first.step - 1] {
+        env.step(a).unwrap();
+    }
+    let snapshot = env.snapshot();
+    let saved = env.save();
+    assert_eq!(saved.dead_plan, env.pending_deaths());
+    let text = serde_json::to_string(&saved).unwrap();
+    let mut continued = Vec::new();
+    for a in &acts[first.step - 1..] {
+        continued.push(env.step(a).unwrap().applied_action);
+    }
+    // Restore: the same deaths at the same steps.
+    let mut restored = AntEnv::new(world.clone(), 0).unwrap();
+    restored.restore(&snapshot).unwrap();
+    let from_snapshot: Vec<_> = acts[first.step - 1..]
+        .iter()
+        .map(|a| restored.step(a).unwrap().applied_action)
+        .collect();
+    assert_eq!(from_snapshot, continued);
+    // A saved state (through JSON): the same.
+    let mut from_file = AntEnv::new(world.clone(), 0).unwrap();
+    from_file
+        .start_from_save(&serde_json::from_str(&text).unwrap())
+        .unwrap();
+    let from_save: Vec<_> = acts[first.step - 1..]
+        .iter()
+        .map(|a| from_file.step(a).unwrap().applied_action)
+        .collect();
+    assert_eq!(from_save, continued);
+    assert_eq!(from_file.damage().dead(), env.damage().dead());
+    // A saved state whose pending death names no actuator, or lies in its past, is refused.
+    let mut bad = saved.clone();
+    bad.dead_plan[0].actuator = 8;
+    let err = AntEnv::new(world.clone(), 0)
+        .unwrap()
+        .start_from_save(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("actuator 8"), "{err}");
+    let mut bad = saved.clone();
+    bad.dead_plan[0].step = 0;
+    let err = AntEnv::new(world, 0)
+        .unwrap()
+        .start_from_save(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("before the state's step"), "{err}");
+}
+
+#[test]
+fn a_fork_heals_a_dead_joint_by_hand() {
+    let world = dead_world(Condition::Mild);
+    let dir = tempfile::tempdir().unwrap();
+    save_model(dir.path(), NetConfig::ant(EncoderKind::None), &world);
+    let actor = Actor::load(dir.path()).unwrap();
+    let (_, seed) = episode_with_deaths(&world);
+    let mut lane = Lane::new(&actor, &world, seed).unwrap();
+    let death = lane.env().pending_deaths()[0];
+    while lane.steps() <= death.step && !lane.is_done() {
+        lane.advance(&actor, ActionMode::Deterministic).unwrap();
+    }
+    assert_eq!(lane.env().damage().scale()[death.actuator], 0.0);
+    let joint = lane.env().damage().joint_names()[death.actuator].clone();
+    let healed = lane
+        .fork(&gaitscope::damage::Edit::parse_list(&format!("heal:{joint}")).unwrap())
+        .unwrap();
+    assert_eq!(healed.env().damage().scale()[death.actuator], 1.0);
+    assert_eq!(
+        healed.env().damage().joint_state(death.actuator),
+        JointState::Healthy
+    );
+}
+
+fn save_model(dir: &std::path::Path, net: NetConfig, world: &GaitConfig) {
+    use gaitscope::policy::checkpoint::TrainingRecord;
+    let net = NetConfig {
+        hidden: vec![16, 16],
+        ..net
+    };
+    let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
+    let record = TrainingRecord {
+        env: world.clone(),
+        sac: SacConfig::default(),
+        seed: 3,
+        steps_done: 0,
+        episodes_done: 0,
+        wall_time_s: 0.0,
+        imported_from: None,
+    };
+    model.save(dir, &record).unwrap();
+}
+
+#[test]
+fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
+    let world = dead_world(Condition::Severe);
+    let net = NetConfig::ant_oracle(Privileged::Damage);
+    assert_eq!(net.obs_dim, OBS_DIM + N_ACTUATORS);
+    net.check_inputs().unwrap();
+    // A privileged encoder model makes no sense and is refused.
+    let bad = NetConfig {
+        privileged: Privileged::Damage,
+        ..NetConfig::ant(EncoderKind::Lstm)
+    };
+    assert!(bad.check_inputs().unwrap_err().contains("memoryless"));
+
+    // The trainer's task: observation, then the scales the next action is applied with.
+    let (probe_env, seed) = episode_with_deaths(&world);
+    drop(probe_env);
+    let env = AntEnv::new(world.clone(), 0).unwrap();
+    let mut task = gaitscope::train::AntTask::new(env, Privileged::Damage);
+    use gaitscope::train::Task;
+    assert_eq!(task.obs_dim(), OBS_DIM + N_ACTUATORS);
+    let mut obs = task.reset_with_seed(seed);
+    let mut saw_dead = false;
+    for a in actions(140, 2) {
+        let scales = *task.env.damage().scale();
+        assert_eq!(&obs[OBS_DIM..], &scales[..]);
+        saw_dead |= scales.contains(&0.0);
+        let out = task.step(&a).unwrap();
+        obs = out.obs;
+        if out.terminated || out.truncated {
+            break;
+        }
+    }
+    assert!(saw_dead, "the episode's deaths reached the oracle's input");
+    // A baseline's task is the observation alone.
+    let mut plain =
+        gaitscope::train::AntTask::new(AntEnv::new(world.clone(), 0).unwrap(), Privileged::None);
+    assert_eq!(plain.reset_with_seed(seed).len(), OBS_DIM);
+
+    // A lane: the oracle checkpoint decides from [obs, true scales], lane by lane and in
+    // lockstep alike; the world and the privileged inputs round-trip through checkpoint.json.
+    let dir = tempfile::tempdir().unwrap();
+    save_model(dir.path(), net, &world);
+    let actor = Actor::load(dir.path()).unwrap();
+    let policy = actor.policy().unwrap();
+    assert_eq!(policy.net().privileged, Privileged::Damage);
+    assert_eq!(policy.meta.env.world.0, "dead-joints");
+    // Asked for in the paper's world, the checkpoint runs in its own (the caller's condition and
+    // step limit apply).
+    let mut requested = GaitConfig::default();
+    requested.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+    requested.env.max_episode_steps = 200;
+    let mut lane = Lane::new(&actor, &requested, seed).unwrap();
+    assert_eq!(lane.env().config().world.0, "dead-joints", "its own world");
+    assert_eq!(lane.env().config().env.goal, [10.0, 10.0]);
+    let mut lockstep = vec![Lane::new(&actor, &requested, seed).unwrap()];
+    let mut saw_dead = false;
+    while !lane.is_done() && lane.steps() < 140 {
+        let mut input = Vec::new();
+        input.extend(lane.obs().iter().map(|&v| v as f32));
+        input.extend(lane.env().damage().scale().iter().map(|&v| v as f32));
+        saw_dead |= lane.env().damage().scale().contains(&0.0);
+        let want = policy
+            .act_batch(&input, None, ActionMode::Deterministic, None)
+            .unwrap()
+            .remove(0)
+            .action;
+        let got = lane
+            .advance(&actor, ActionMode::Deterministic)
+            .unwrap()
+            .outcome
+            .commanded_action;
+        gaitscope::lane::advance_lockstep(&actor, &mut lockstep, ActionMode::Deterministic)
+            .unwrap();
+        let batched = lockstep[0].last().unwrap().outcome.commanded_action;
+        for i in 0..ACT_DIM {
+            assert_eq!(got[i], want[i].clamp(-1.0, 1.0));
+            assert_eq!(batched[i], got[i]);
+        }
+    }
+    assert!(saw_dead);
+    // Its input differs from the observation alone once a joint is dead: the scales matter.
+    let mut obs_only = Vec::new();
+    obs_only.extend(lane.obs().iter().map(|&v| v as f32));
+    obs_only.extend([1.0f32; N_ACTUATORS]);
+    assert_ne!(
+        policy
+            .act_batch(&obs_only, None, ActionMode::Deterministic, None)
+            .unwrap()[0]
+            .action,
+        {
+            let mut input = Vec::new();
+            input.extend(lane.obs().iter().map(|&v| v as f32));
+            input.extend(lane.env().damage().scale().iter().map(|&v| v as f32));
+            policy
+                .act_batch(&input, None, ActionMode::Deterministic, None)
+                .unwrap()
+                .remove(0)
+                .action
+        }
+    );
+    // A hand-edited checkpoint.json whose input size disagrees with its privileged inputs.
+    let meta_path = dir.path().join("checkpoint.json");
+    let text = std::fs::read_to_string(&meta_path).unwrap();
+    std::fs::write(
+        &meta_path,
+        text.replace("\"obs_dim\": 37", "\"obs_dim\": 29"),
+    )
+    .unwrap();
+    let err = Actor::load(dir.path()).err().unwrap().to_string();
+    assert!(err.contains("obs_dim 29 does not fit"), "{err}");
+}
