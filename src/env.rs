@@ -10,7 +10,7 @@ use mujoco_rs::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 use crate::config::{ConfigError, GaitConfig};
@@ -114,23 +114,81 @@ pub struct StepOutcome {
     pub applied_action: Action,
     /// Actuators that triggered on this step.
     pub new_triggers: usize,
+    /// How the episode ended with this step, if it did.
+    pub ending: Option<Ending>,
+}
+
+/// How an episode ended. Ant-v4 terminates when the torso leaves its healthy height band; the
+/// early endings seen are the torso *leaping above* it, not flips (a flipped Ant stays inside
+/// the band and runs out of time), so the two are named apart.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Ending {
+    /// The torso reached the goal's radius.
+    Success,
+    /// The torso rose above the healthy height band (`healthy_z_range`'s top).
+    Leapt,
+    /// The torso sank below the band.
+    Collapsed,
+    /// MuJoCo reported a diverging simulation.
+    Unstable,
+    /// The step limit, the torso upright.
+    Timeout,
+    /// The step limit, the torso upside down (its up axis pointing below the horizon).
+    TimeoutUpsideDown,
+}
+
+impl Ending {
+    pub const ALL: [Ending; 6] = [
+        Ending::Success,
+        Ending::Leapt,
+        Ending::Collapsed,
+        Ending::Unstable,
+        Ending::Timeout,
+        Ending::TimeoutUpsideDown,
+    ];
+
+    /// Its name in every view, table and JSON line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Ending::Success => "success",
+            Ending::Leapt => "leapt",
+            Ending::Collapsed => "collapsed",
+            Ending::Unstable => "unstable simulation",
+            Ending::Timeout => "timeout",
+            Ending::TimeoutUpsideDown => "timeout upside down",
+        }
+    }
+
+    /// What it means, for keys and captions.
+    pub fn meaning(self) -> &'static str {
+        match self {
+            Ending::Success => "the torso reached the goal",
+            Ending::Leapt => "the torso leapt above the healthy height band (Ant-v4's termination)",
+            Ending::Collapsed => "the torso sank below the healthy height band",
+            Ending::Unstable => "MuJoCo reported a diverging simulation",
+            Ending::Timeout => "the step limit, upright",
+            Ending::TimeoutUpsideDown => "the step limit, the torso upside down",
+        }
+    }
+
+    /// Whether the episode ended early without reaching the goal (a termination, not a timeout).
+    pub fn is_fall(self) -> bool {
+        matches!(self, Ending::Leapt | Ending::Collapsed | Ending::Unstable)
+    }
+}
+
+impl std::fmt::Display for Ending {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 impl StepOutcome {
-    /// How the episode ended at this step, in words ("success", "fell", "timeout",
-    /// "unstable"), or `None` while it goes on.
+    /// How the episode ended at this step, in words ([`Ending::name`]), or `None` while it goes
+    /// on.
     pub fn ending(&self) -> Option<&'static str> {
-        if self.success {
-            Some("success")
-        } else if self.unstable {
-            Some("unstable simulation")
-        } else if self.terminated {
-            Some("fell")
-        } else if self.truncated {
-            Some("timeout")
-        } else {
-            None
-        }
+        self.ending.map(Ending::name)
     }
 
     pub fn done(&self) -> bool {
@@ -600,6 +658,26 @@ impl AntEnv {
         let terminated = !healthy || success;
         let truncated = self.steps >= env.max_episode_steps;
         self.done = terminated || truncated;
+        let ending = if success {
+            Some(Ending::Success)
+        } else if unstable {
+            Some(Ending::Unstable)
+        } else if terminated {
+            let z = self.physics.qpos()[2];
+            Some(if z > env.healthy_z_range[1] {
+                Ending::Leapt
+            } else {
+                Ending::Collapsed
+            })
+        } else if truncated {
+            Some(if self.torso_upside_down() {
+                Ending::TimeoutUpsideDown
+            } else {
+                Ending::Timeout
+            })
+        } else {
+            None
+        };
         let outcome = StepOutcome {
             step,
             obs: self.observation(),
@@ -621,6 +699,7 @@ impl AntEnv {
             commanded_action: commanded,
             applied_action: applied,
             new_triggers,
+            ending,
         };
         // Deaths due at the next step happen now, so the scales after a step (what the oracle
         // reads, what the viewer colours) are those the next action is applied with.
@@ -628,6 +707,13 @@ impl AntEnv {
             self.kill_due();
         }
         Ok(outcome)
+    }
+
+    /// Whether the torso's up axis points below the horizon: its world z component,
+    /// 1 − 2(x² + y²) of the free joint's quaternion (w, x, y, z) = qpos[3..7], is negative.
+    pub fn torso_upside_down(&self) -> bool {
+        let q = &self.physics.qpos()[3..7];
+        1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2]) < 0.0
     }
 
     /// Kills the actuators whose onset is the coming step (`self.steps`).
@@ -1119,7 +1205,30 @@ mod tests {
         env.reset_with_seed(1);
         let out = env.step(&[0.0; N_ACTUATORS]).unwrap();
         assert!(out.terminated && !out.success);
-        assert_eq!(out.ending(), Some("fell"));
+        assert_eq!(out.ending(), Some("collapsed"));
+        // Above the band: a leap, Ant-v4's usual early ending.
+        let mut config = GaitConfig::default();
+        config.env.healthy_z_range = [0.0, 0.3];
+        let mut env = AntEnv::new(config, 0).unwrap();
+        env.reset_with_seed(1);
+        let out = env.step(&[0.0; N_ACTUATORS]).unwrap();
+        assert_eq!(out.ending, Some(Ending::Leapt));
+        // Upside down at the limit: the torso's quaternion turned half a turn about x.
+        let mut config = GaitConfig::default();
+        config.env.max_episode_steps = 1;
+        config.env.healthy_z_range = [-10.0, 10.0];
+        let mut env = AntEnv::new(config, 0).unwrap();
+        env.reset_with_seed(1);
+        let mut qpos = env.qpos().to_vec();
+        qpos[2] = 1.0;
+        qpos[3..7].copy_from_slice(&[0.0, 1.0, 0.0, 0.0]);
+        let qvel = vec![0.0; env.qvel().len()];
+        env.reset_to_state(&qpos, &qvel, crate::damage::Condition::Healthy)
+            .unwrap();
+        assert!(env.torso_upside_down());
+        let out = env.step(&[0.0; N_ACTUATORS]).unwrap();
+        assert_eq!(out.ending, Some(Ending::TimeoutUpsideDown));
+        assert_eq!(out.ending(), Some("timeout upside down"));
     }
 
     /// Foot contacts against MuJoCo's contact list read here by geom name, on stepped states

@@ -92,20 +92,108 @@ pub fn torque_key() -> [(&'static str, [u8; 3]); 5] {
     ]
 }
 
-/// Each model's hue, by lane (the first model, the second, a fork …): orange, blue, teal,
-/// magenta, olive, grey — far apart from each other and from the torque colours' ramp.
-pub const MODEL: [[u8; 3]; 6] = [
-    [255, 140, 0],
-    [60, 120, 230],
-    [0, 170, 170],
-    [200, 60, 160],
-    [150, 150, 40],
-    [150, 150, 150],
-];
+/// Each model's hue in degrees, by lane (the first model, the second, a fork …): orange, blue,
+/// teal, magenta, olive, then around again — far apart from each other and, drawn as lines and
+/// trails, never on the legs, whose colours are the torque key's.
+pub const MODEL_HUES: [f64; 5] = [24.0, 212.0, 175.0, 320.0, 60.0];
 
-/// The hue of lane `index` (models beyond six reuse hues in order).
+/// The names every view gives the model hues, in [`MODEL_HUES`]' order.
+pub const MODEL_HUE_NAMES: [&str; 5] = ["orange", "blue", "teal", "magenta", "olive"];
+
+/// Lane `index`'s colour: its trail, its one-line series (goal distance), its key entry.
 pub fn model(index: usize) -> [u8; 3] {
-    MODEL[index % MODEL.len()]
+    model_shade(index, 0, 1)
+}
+
+/// The name of lane `index`'s hue ("orange").
+pub fn model_hue_name(index: usize) -> &'static str {
+    MODEL_HUE_NAMES[index % MODEL_HUE_NAMES.len()]
+}
+
+/// The `i`-th of `n` shades of lane `index`'s hue: one hue, lightness from dark to light, so a
+/// lane's lines read as one colour and its joints within it still differ.
+pub fn model_shade(index: usize, i: usize, n: usize) -> [u8; 3] {
+    let hue = MODEL_HUES[index % MODEL_HUES.len()];
+    let light = if n <= 1 {
+        0.45
+    } else {
+        0.28 + 0.42 * i as f64 / (n - 1) as f64
+    };
+    hsl_to_rgb(hue, 0.8, light)
+}
+
+/// HSL (hue in degrees, saturation and lightness in 0..=1) to 8-bit RGB.
+pub fn hsl_to_rgb(hue: f64, sat: f64, light: f64) -> [u8; 3] {
+    let c = (1.0 - (2.0 * light - 1.0).abs()) * sat;
+    let h = hue.rem_euclid(360.0) / 60.0;
+    let x = c * (1.0 - (h % 2.0 - 1.0).abs());
+    let (r, g, b) = match h as u32 {
+        0 => (c, x, 0.0),
+        1 => (x, c, 0.0),
+        2 => (0.0, c, x),
+        3 => (0.0, x, c),
+        4 => (x, 0.0, c),
+        _ => (c, 0.0, x),
+    };
+    let m = light - c / 2.0;
+    let to8 = |v: f64| ((v + m) * 255.0).round().clamp(0.0, 255.0) as u8;
+    [to8(r), to8(g), to8(b)]
+}
+
+/// A leg's state in the gait diagram while its foot is on the floor: its worst joint's torque,
+/// as a category (the state view colours a fixed set of values).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LegTorque {
+    Full,
+    Reduced,
+    Dead,
+    Pinned,
+}
+
+impl LegTorque {
+    pub const ALL: [LegTorque; 4] = [
+        LegTorque::Full,
+        LegTorque::Reduced,
+        LegTorque::Dead,
+        LegTorque::Pinned,
+    ];
+
+    /// The leg's category from its joints' torques: a dead joint outranks a weakened one, a
+    /// weakened one a pin, a pin full torque.
+    pub fn of(joints: impl IntoIterator<Item = Torque>) -> Self {
+        let rank = |t: &Torque| match t {
+            Torque::Dead => 3,
+            Torque::Reduced(_) => 2,
+            Torque::Pinned(_) => 1,
+            Torque::Full => 0,
+        };
+        match joints.into_iter().max_by_key(rank) {
+            Some(Torque::Dead) => LegTorque::Dead,
+            Some(Torque::Reduced(_)) => LegTorque::Reduced,
+            Some(Torque::Pinned(_)) => LegTorque::Pinned,
+            _ => LegTorque::Full,
+        }
+    }
+
+    /// The state's name in the gait view ("stance · full torque").
+    pub const fn stance_name(self) -> &'static str {
+        match self {
+            LegTorque::Full => "stance · full torque",
+            LegTorque::Reduced => "stance · torque lost",
+            LegTorque::Dead => "stance · a joint dead",
+            LegTorque::Pinned => "stance · pinned by hand",
+        }
+    }
+
+    /// Its tint: the torque key's colour (a weakened leg at the ramp's middle, scale 0.5).
+    pub fn rgb(self) -> [u8; 3] {
+        match self {
+            LegTorque::Full => FULL,
+            LegTorque::Reduced => Torque::Reduced(0.5).rgb(),
+            LegTorque::Dead => DEAD,
+            LegTorque::Pinned => PINNED,
+        }
+    }
 }
 
 #[cfg(test)]
@@ -135,11 +223,37 @@ mod tests {
         assert!(Torque::of(0.3, JointState::Healthy).lost());
         // Every key colour differs from every other, and the model hues from all of them.
         let mut all: Vec<[u8; 3]> = torque_key().iter().map(|(_, c)| *c).collect();
-        all.extend(MODEL);
+        all.extend((0..MODEL_HUES.len()).map(model));
         for (i, a) in all.iter().enumerate() {
             for b in &all[i + 1..] {
                 assert_ne!(a, b);
             }
         }
+    }
+
+    #[test]
+    fn model_hues_by_hand_and_shades_darken_to_lighten() {
+        // Orange (24°) at lightness 0.45, saturation 0.8: c = 0.72, x = 0.288, m = 0.09,
+        // so (0.81, 0.378, 0.09) × 255.
+        assert_eq!(model(0), [207, 96, 23]);
+        assert_eq!(hsl_to_rgb(0.0, 1.0, 0.5), [255, 0, 0]);
+        assert_eq!(hsl_to_rgb(120.0, 1.0, 0.5), [0, 255, 0]);
+        assert_eq!(model(MODEL_HUES.len()), model(0), "hues go around");
+        let sum = |c: [u8; 3]| c.iter().map(|&v| v as u32).sum::<u32>();
+        assert!(sum(model_shade(1, 0, 8)) < sum(model_shade(1, 7, 8)));
+    }
+
+    #[test]
+    fn a_leg_reads_its_worst_joint() {
+        use Torque::*;
+        assert_eq!(LegTorque::of([Full, Full]), LegTorque::Full);
+        assert_eq!(LegTorque::of([Full, Pinned(0.4)]), LegTorque::Pinned);
+        assert_eq!(
+            LegTorque::of([Reduced(0.9), Pinned(0.4)]),
+            LegTorque::Reduced
+        );
+        assert_eq!(LegTorque::of([Reduced(0.9), Dead]), LegTorque::Dead);
+        let names: Vec<_> = LegTorque::ALL.iter().map(|l| l.stance_name()).collect();
+        assert!(names.windows(2).all(|w| w[0] != w[1]));
     }
 }

@@ -27,6 +27,8 @@ pub struct EpisodeSummary {
     pub success: bool,
     pub terminated: bool,
     pub truncated: bool,
+    /// How it ended: success, leapt, collapsed, timeout, … ([`crate::env::Ending`]).
+    pub ending: Option<crate::env::Ending>,
     pub final_distance: f64,
     #[serde(rename = "return")]
     pub episode_return: f64,
@@ -100,6 +102,7 @@ pub fn summarize(
         success: last.success,
         terminated: last.terminated,
         truncated: last.truncated,
+        ending: last.ending,
         final_distance: last.distance,
         episode_return,
         trigger_steps,
@@ -109,16 +112,10 @@ pub fn summarize(
 
 impl std::fmt::Display for EpisodeSummary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let outcome = if self.success {
-            "success"
-        } else if self.terminated {
-            "unhealthy"
-        } else {
-            "timeout"
-        };
+        let outcome = self.ending.map_or("running", crate::env::Ending::name);
         write!(
             f,
-            "episode {:>3}  seed {:<6} {:<7}  {:>4} steps  {:<9}  final distance {:6.2} m  return {:9.1}  triggers:",
+            "episode {:>3}  seed {:<6} {:<7}  {:>4} steps  {:<9}  final distance {:6.2} m  return {:9.1}  fatigue triggers:",
             self.episode,
             self.seed,
             self.condition.name(),
@@ -127,11 +124,19 @@ impl std::fmt::Display for EpisodeSummary {
             self.final_distance,
             self.episode_return
         )?;
-        for (joint, step) in &self.trigger_steps {
-            match step {
-                Some(s) => write!(f, " {joint}@{s}")?,
-                None => write!(f, " {joint}@-")?,
-            }
+        // Only the joints that triggered, in step order ("--json" has every joint).
+        let mut triggered: Vec<(usize, &str)> = self
+            .trigger_steps
+            .iter()
+            .filter_map(|(joint, step)| step.map(|s| (s, joint.as_str())))
+            .collect();
+        triggered.sort();
+        if triggered.is_empty() {
+            return write!(f, " none");
+        }
+        for (k, (step, joint)) in triggered.iter().enumerate() {
+            let sep = if k == 0 { " " } else { ", " };
+            write!(f, "{sep}{joint} at step {step}")?;
         }
         Ok(())
     }

@@ -16,7 +16,7 @@ use mujoco_rs::renderer::MjRenderer;
 
 use crate::damage::JointState;
 use crate::env::AntEnv;
-use crate::telemetry::damage_color;
+use crate::palette::Torque;
 
 #[derive(Debug, thiserror::Error)]
 pub enum VideoError {
@@ -167,11 +167,8 @@ impl FrameRenderer {
         // SAFETY: only colours change; no array is resized and no index is touched.
         let rgba = unsafe { self.data.model_mut() }.geom_rgba_mut();
         for &(g, a) in &self.leg_geoms {
-            let c = damage_color(
-                damage.joint_state(a),
-                damage.fatigue()[a],
-                damage.config().threshold,
-            );
+            // The torque the joint has left, as every view colours it.
+            let c = Torque::of(damage.scale()[a], damage.joint_state(a)).rgba();
             rgba[g] = [c[0], c[1], c[2], c[3]].map(|v| f32::from(v) / 255.0);
         }
         self.data.forward();

@@ -93,8 +93,14 @@ fn text_summary_names_condition_and_triggers() {
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let text = stdout(&out);
+    // 20 steps of the zero policy trigger nothing: the line says so in words, and how the
+    // episode ended (the step limit).
     assert!(
-        text.contains("mild") && text.contains("20 steps") && text.contains("hip_1@"),
+        text.contains("mild") && text.contains("20 steps") && text.contains("timeout"),
+        "{text}"
+    );
+    assert!(
+        text.trim_end().ends_with("fatigue triggers: none"),
         "{text}"
     );
 }
@@ -490,8 +496,20 @@ fn rollout_prints_the_fork_lanes_summary_too() {
     let lines: Vec<&str> = text.lines().collect();
     assert_eq!(lines.len(), 2, "{text}");
     assert!(lines[0].starts_with("episode") && lines[1].trim_start().starts_with("fork episode"));
-    // The hand-failed joint never triggers by fatigue in the fork.
-    assert!(lines[1].contains("ankle_3@-"), "{text}");
+    // The hand-failed joint never triggers by fatigue in the fork; the line names only the
+    // joints that did, with their steps, and how the episode ended.
+    assert!(!lines[1].contains("ankle_3 at step"), "{text}");
+    assert!(lines[1].contains("fatigue triggers: "), "{text}");
+    assert!(
+        !text.contains("@-") && !text.contains("unhealthy"),
+        "{text}"
+    );
+    assert!(
+        ["success", "leapt", "collapsed", "timeout"]
+            .iter()
+            .any(|e| lines[0].contains(e)),
+        "{text}"
+    );
     let out = gaitscope(
         &[
             &base[..],

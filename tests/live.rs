@@ -322,8 +322,7 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
     assert_eq!(distance, 3, "every step reached the file");
     // The saved file's legs: per-step colours only, each the damage palette of its step.
     common::assert_no_static_shadowing(&chunks);
-    let threshold = GaitConfig::default().damage.threshold;
-    common::check_leg_colors(&chunks, &format!("/{}", LIVE_ROOTS[0]), threshold, &[]);
+    common::check_leg_colors(&chunks, &format!("/{}", LIVE_ROOTS[0]), &[]);
 }
 
 /// `live --connect` to a viewer a person started themselves, of the current Rerun: the stock
@@ -390,7 +389,7 @@ fn live_streams_to_a_stock_viewer_started_by_the_test() {
     let distance = common::rows(&chunks, &format!("{root}/goal/distance"));
     assert_eq!(distance as u64, steps, "every step reached the viewer");
     common::assert_no_static_shadowing(&chunks);
-    common::check_leg_colors(&chunks, &root, GaitConfig::default().damage.threshold, &[]);
+    common::check_leg_colors(&chunks, &root, &[]);
 }
 
 /// Two models live under severe damage, one joint pinned by hand: the stream's legs show each
@@ -420,10 +419,9 @@ fn live_legs_show_each_models_damage_and_lines_name_the_model() {
     sim.shutdown().unwrap();
     let chunks = common::recording_chunks(storage.take());
     common::assert_no_static_shadowing(&chunks);
-    let threshold = GaitConfig::default().damage.threshold;
     let mut red = 0;
     for root in LIVE_ROOTS {
-        red += common::check_leg_colors(&chunks, &format!("/{root}"), threshold, &[(pinned_at, 2)]);
+        red += common::check_leg_colors(&chunks, &format!("/{root}"), &[(pinned_at, 2)]);
         // One checkpoint twice: its name and the lane in every series name.
         let names = common::series_names(&chunks, &format!("/{root}/joints/fatigue"));
         assert_eq!(names.len(), 8);

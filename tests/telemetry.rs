@@ -350,7 +350,7 @@ fn the_gait_diagram_follows_mujoco_foot_contacts() {
 /// The layout's view properties travel on the blueprint stream, before its activation: every
 /// 3-D view follows its model's floor ring, every time-series legend is hidden.
 #[test]
-fn the_blueprint_makes_cameras_follow_and_hides_legends() {
+fn the_blueprint_makes_cameras_follow_keys_the_models_and_hides_crowded_legends() {
     use rerun::log::LogMsg;
     let roots = vec!["ant".to_string(), "fork".to_string()];
     let (_rec, storage) = gaitscope::telemetry::open(&Sink::Memory, "bp-test", &roots).unwrap();
@@ -360,7 +360,8 @@ fn the_blueprint_makes_cameras_follow_and_hides_legends() {
         .position(|m| matches!(m, LogMsg::BlueprintActivationCommand(_)))
         .expect("the blueprint is activated");
     let mut tracked = Vec::new();
-    let mut hidden_legends = 0;
+    let (mut hidden_legends, mut shown_legends) = (0, 0);
+    let mut event_columns = None;
     for (i, msg) in msgs.iter().enumerate() {
         let LogMsg::ArrowMsg(store, arrow) = msg else {
             continue;
@@ -394,62 +395,175 @@ fn the_blueprint_makes_cameras_follow_and_hides_legends() {
         if path.ends_with("/PlotLegend") {
             let component = rerun::external::re_sdk_types::blueprint::archetypes::PlotLegend::descriptor_visible().component;
             for s in chunk.iter_slices::<bool>(component) {
-                assert_eq!(s.iter().collect::<Vec<bool>>(), [false]);
-                hidden_legends += 1;
+                match s.iter().collect::<Vec<bool>>()[..] {
+                    [false] => hidden_legends += 1,
+                    [true] => shown_legends += 1,
+                    ref other => panic!("{other:?}"),
+                }
             }
+        }
+        if path.ends_with("/TextLogColumns") {
+            // The event text before the entity path (a narrow view cut both to "/enc…").
+            let component = rerun::external::re_sdk_types::blueprint::archetypes::TextLogColumns::descriptor_text_log_columns().component;
+            let raw = chunk
+                .raw_component_array(component)
+                .expect("columns")
+                .to_data();
+            event_columns = Some(format!("{raw:?}"));
         }
     }
     tracked.sort();
     assert_eq!(tracked, ["/ant/world/focus", "/fork/world/focus"]);
-    assert_eq!(hidden_legends, 5, "fatigue, scale, z, distance, probe");
+    // Eight or sixteen lines would cover the plot: fatigue, scale, z and probe keep the key
+    // entity instead; the goal distance (a line per model) shows its legend.
+    assert_eq!(hidden_legends, 4, "fatigue, scale, z, probe");
+    assert_eq!(shown_legends, 1, "goal distance");
+    assert!(event_columns.is_some(), "the event log's columns are set");
+    let views = common::blueprint_view_names(&msgs);
+    assert!(
+        views.contains(&"Key: what each colour means".to_string()),
+        "{views:?}"
+    );
+    assert!(
+        views.contains(&"Goal distance (m)".to_string()),
+        "{views:?}"
+    );
 }
 
+/// The key every recording carries: which colour is which model, and what the legs', gait's,
+/// probe's and PCA's colours and the endings' words mean.
 #[test]
-fn leg_colours_are_per_step_and_turn_red_when_a_joint_triggers() {
-    let truth = truth();
-    let run = record(options(Sink::Memory), &AtomicBool::new(false)).unwrap();
+fn the_key_names_each_model_and_every_colour() {
+    use gaitscope::rollout::BuiltinPolicy;
+    let mut opts = options(Sink::Memory);
+    opts.actors = vec![
+        Actor::Builtin(BuiltinPolicy::Random),
+        Actor::Builtin(BuiltinPolicy::Zero),
+    ];
+    let run = record(opts, &AtomicBool::new(false)).unwrap();
     let chunks = chunks(run.storage.unwrap().take());
-    common::assert_no_static_shadowing(&chunks);
-    let colors = common::leg_colors(&chunks, "/ant");
-    let threshold = config().damage.threshold;
-    let red = gaitscope::telemetry::damage_color(
-        gaitscope::damage::JointState::Triggered,
-        0.0,
-        threshold,
+    let text = rerun::TextDocument::descriptor_text().component;
+    let docs: Vec<String> = chunks
+        .iter()
+        .filter(|c| c.is_static() && c.entity_path().to_string() == "/key")
+        .flat_map(|c| c.iter_slices::<String>(text).collect::<Vec<_>>())
+        .flat_map(|s| s.iter().map(|l| l.to_string()).collect::<Vec<_>>())
+        .collect();
+    assert_eq!(docs.len(), 1, "one static key");
+    let key = &docs[0];
+    for line in [
+        "**orange**: random",
+        "**blue**: zero",
+        "**green**: full torque",
+        "**amber → red**: torque lost",
+        "**slate**: dead",
+        "**violet**: pinned by hand",
+        "LEAPT = the torso leapt above the healthy height band",
+        "TIMEOUT UPSIDE DOWN",
+    ] {
+        assert!(key.contains(line), "{line:?} in {key}");
+    }
+    // The colours the key names are the ones drawn: each lane's trail and goal-distance line
+    // in its model's hue (orange, blue: hues 24° and 212° at 80 % saturation, 45 % light).
+    let strips = rerun::LineStrips3D::descriptor_colors().component;
+    for (root, rgb) in [("random", [207u8, 96, 23]), ("zero", [23, 109, 207])] {
+        let trail: Vec<[u8; 4]> = common::per_step(&chunks, &format!("/{root}/world/trail"), |c| {
+            c.iter_slices::<u32>(strips)
+                .flat_map(|s| s.iter().map(|c| c.to_be_bytes()).collect::<Vec<_>>())
+                .collect()
+        })
+        .into_iter()
+        .map(|(_, c)| c)
+        .collect();
+        assert!(!trail.is_empty());
+        assert!(trail.iter().all(|c| c[..3] == rgb), "{root}: {trail:?}");
+        let line = common::series_colors(&chunks, &format!("/{root}/goal/distance"));
+        assert_eq!(line, [[rgb[0], rgb[1], rgb[2], 255]], "{root}");
+        let names = common::series_names(&chunks, &format!("/{root}/goal/distance"));
+        assert_eq!(names, [format!("{root}: goal distance")]);
+    }
+}
+
+/// A leg's colour is the torque its joint has left, whatever fatigue does: under `healthy`
+/// joints trigger and keep scale 1, and every leg stays green; under mild and severe a trigger
+/// takes torque and the leg turns orange (mild, 0.5) or red (severe, 0.1); a dead joint
+/// (the dead-joints world) is slate. Colours decoded from the recording, against the key's end
+/// points applied by hand to the env's own account of each joint's scale.
+#[test]
+fn leg_colours_are_the_torque_each_joint_has_left() {
+    let run_condition = |config: GaitConfig| {
+        let mut opts = options(Sink::Memory);
+        opts.config = config;
+        let run = record(opts, &AtomicBool::new(false)).unwrap();
+        chunks(run.storage.unwrap().take())
+    };
+    // Healthy: the random policy triggers joints (fatigue passes τ), yet nothing turns colour.
+    let mut healthy = config();
+    healthy.damage.condition = ConditionChoice::Fixed(Condition::Healthy);
+    let chunks_h = run_condition(healthy.clone());
+    common::assert_no_static_shadowing(&chunks_h);
+    let events = common::text_log_levels(&chunks_h, "/ant/events");
+    assert!(
+        events
+            .iter()
+            .any(|(_, level, text)| text.contains("triggered") && level == "INFO"),
+        "a healthy trigger is news (INFO), not a warning: {events:?}"
     );
-    assert_eq!(red, [220, 40, 40, 255], "the palette's triggered red");
-    // Against the env's own account, replayed independently.
-    let mut saw_red = false;
-    for (t, fatigue) in truth.fatigue.iter().enumerate() {
-        let row = &colors[&(t as i64 + 1)];
-        for (i, joint) in truth.joint_names.iter().enumerate() {
-            let geom = common::JOINT_GEOMS
-                .iter()
-                .find(|(j, _)| j == joint)
-                .unwrap()
-                .1;
-            let triggered = truth
-                .trigger_steps
-                .iter()
-                .any(|(s, j)| j == joint && *s <= t);
-            let expected = if triggered {
-                red
-            } else {
-                gaitscope::telemetry::damage_color(
-                    gaitscope::damage::JointState::Healthy,
-                    fatigue[i],
-                    threshold,
-                )
-            };
-            assert_eq!(row[geom], expected, "{geom} ({joint}) at step {t}");
-            saw_red |= triggered;
+    assert!(
+        events.iter().all(|(_, level, _)| level != "WARN"),
+        "{events:?}"
+    );
+    assert_eq!(common::check_leg_colors(&chunks_h, "/ant", &[]), 0);
+    let green = common::expected_leg_color(1.0, false);
+    for (step, row) in common::leg_colors(&chunks_h, "/ant") {
+        for (_, geom) in common::JOINT_GEOMS {
+            assert_eq!(row[geom], green, "{geom} at step {step}");
         }
     }
+    // Mild (0.5) and severe (0.1): a triggered joint halfway down the ramp, and near red.
+    for (condition, want) in [
+        (Condition::Mild, common::expected_leg_color(0.5, false)),
+        (Condition::Severe, common::expected_leg_color(0.1, false)),
+    ] {
+        let mut c = config();
+        c.damage.condition = ConditionChoice::Fixed(condition);
+        let chunks = run_condition(c);
+        assert!(
+            common::check_leg_colors(&chunks, "/ant", &[]) > 0,
+            "{condition}"
+        );
+        let seen: std::collections::BTreeSet<[u8; 4]> = common::leg_colors(&chunks, "/ant")
+            .values()
+            .flat_map(|row| row.values().copied().collect::<Vec<_>>())
+            .collect();
+        assert!(seen.contains(&want), "{condition}: {seen:?}");
+        let events = common::text_log_levels(&chunks, "/ant/events");
+        assert!(
+            events
+                .iter()
+                .any(|(_, l, t)| l == "WARN" && t.contains("triggered"))
+        );
+    }
+    // A dead joint: slate from its onset, its stance named so in the gait view.
+    let mut dead = GaitConfig::world("dead-joints").unwrap();
+    dead.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+    dead.env.max_episode_steps = 150;
+    let chunks_d = run_condition(dead);
+    assert!(common::check_leg_colors(&chunks_d, "/ant", &[]) > 0);
+    let slate = common::expected_leg_color(0.0, false);
+    assert_eq!(slate, [55, 60, 75, 255]);
     assert!(
-        saw_red,
-        "a severe episode of 80 random steps triggers a joint"
+        common::leg_colors(&chunks_d, "/ant")
+            .values()
+            .any(|row| row.values().any(|c| *c == slate))
     );
-    assert!(common::check_leg_colors(&chunks, "/ant", threshold, &[]) > 0);
+    let events = common::text_log_levels(&chunks_d, "/ant/events");
+    assert!(
+        events
+            .iter()
+            .any(|(_, l, t)| l == "WARN" && t.contains("died; scale → 0")),
+        "{events:?}"
+    );
 }
 
 /// Two models side by side: each root's legs show its own damage, and each model's plot lines
@@ -465,12 +579,11 @@ fn compared_models_have_their_own_leg_colours_names_and_hues() {
     let run = record(opts, &AtomicBool::new(false)).unwrap();
     let chunks = chunks(run.storage.unwrap().take());
     common::assert_no_static_shadowing(&chunks);
-    let threshold = config().damage.threshold;
     assert!(
-        common::check_leg_colors(&chunks, "/random", threshold, &[]) > 0,
+        common::check_leg_colors(&chunks, "/random", &[]) > 0,
         "the random policy's severe episode triggers a joint"
     );
-    common::check_leg_colors(&chunks, "/zero", threshold, &[]);
+    common::check_leg_colors(&chunks, "/zero", &[]);
     let mut hues = Vec::new();
     for root in ["random", "zero"] {
         let names = common::series_names(&chunks, &format!("/{root}/joints/fatigue"));
@@ -524,9 +637,9 @@ fn compared_models_have_their_own_leg_colours_names_and_hues() {
             "{root}: {text}"
         );
         assert!(
-            ["SUCCESS", "FELL", "TIMEOUT"]
+            gaitscope::env::Ending::ALL
                 .iter()
-                .any(|w| text.starts_with(w)),
+                .any(|e| text.starts_with(&e.name().to_uppercase())),
             "{text}"
         );
     }
@@ -679,7 +792,7 @@ fn a_recording_made_with_rerun_0_36_still_reads() {
         .join("tests/fixtures/rerun-0.36-encoder-lstm-severe.rrd");
     let old = common::read_rrd(&fixture);
     let threshold = config().damage.threshold;
-    let red = common::check_leg_colors(&old, "/ant", threshold, &[]);
+    let red = check_0_36_leg_colors(&old, threshold);
     assert!(red > 0, "the severe episode shows triggered (red) joints");
     let viewer = common::stock_viewer();
     let dir = tempfile::tempdir().unwrap();
@@ -704,12 +817,47 @@ fn a_recording_made_with_rerun_0_36_still_reads() {
         std::fs::read(&fixture).unwrap(),
         "migrate rewrote the file"
     );
-    assert_eq!(
-        common::check_leg_colors(&migrated, "/ant", threshold, &[]),
-        red
-    );
+    assert_eq!(check_0_36_leg_colors(&migrated, threshold), red);
     assert_eq!(
         common::leg_colors(&migrated, "/ant"),
         common::leg_colors(&old, "/ant")
     );
+}
+
+/// The 0.36-era leg colours (before colour meant torque lost): red [220, 40, 40] once a joint's
+/// scale fell below 1, else green shading to amber by fatigue in tenths of τ. Returns the red
+/// (step, joint) pairs.
+fn check_0_36_leg_colors(chunks: &[Chunk], threshold: f64) -> usize {
+    let fatigue = common::joint_series(chunks, "/ant/joints/fatigue");
+    let scale = common::joint_series(chunks, "/ant/joints/scale");
+    // Series and colours in actuator order (hip_4, ankle_4, hip_1, …: assets/ant.xml).
+    let joints: Vec<String> = AntEnv::new(GaitConfig::default(), 0)
+        .unwrap()
+        .actuators()
+        .iter()
+        .map(|a| a.joint.clone())
+        .collect();
+    let mut red = 0;
+    for (step, row) in common::leg_colors(chunks, "/ant") {
+        let (Some(f), Some(s)) = (fatigue.get(&step), scale.get(&step)) else {
+            continue;
+        };
+        for (i, joint) in joints.iter().enumerate() {
+            let geom = &common::JOINT_GEOMS
+                .iter()
+                .find(|(j, _)| j == joint)
+                .unwrap()
+                .1;
+            let want = if s[i] < 1.0 {
+                red += 1;
+                [220, 40, 40, 255]
+            } else {
+                let k = ((f[i] / threshold).clamp(0.0, 1.0) * 10.0).floor() as f32 / 10.0;
+                let lerp = |a: f32, b: f32| (a + (b - a) * k) as u8;
+                [lerp(60.0, 240.0), 170, lerp(90.0, 30.0), 255]
+            };
+            assert_eq!(row[*geom], want, "{geom} at step {step}");
+        }
+    }
+    red
 }

@@ -12,6 +12,7 @@ use super::breakpoint::{Breakpoint, format_list};
 use super::{Command, LiveCondition, MAX_SPEED, MIN_SPEED, PanelStats, SimHandle, Slot, Snapshot};
 use crate::damage::Edit;
 use crate::damage::{JointOverride, JointState, N_ACTUATORS};
+use crate::palette::Torque;
 use crate::policy::ActionMode;
 
 /// The fatigue bar spans 0 … 1.5 τ so the threshold sits at two thirds, with room to overshoot.
@@ -387,8 +388,8 @@ impl Panel {
                         .label(&lane.joint_names[i])
                         .on_hover_text(&lane.joint_legs[i])
                         .id;
-                    fatigue_bar(ui, lane.fatigue[i], lane.threshold, lane.states[i]);
-                    let (text, color) = state_text(lane.states[i]);
+                    fatigue_bar(ui, lane.fatigue[i], lane.threshold);
+                    let (text, color) = state_text(lane.scale[i], lane.states[i]);
                     ui.colored_label(color, text);
                     let mut scale = lane.scale[i];
                     let slider = egui::Slider::new(&mut scale, 0.0..=1.0)
@@ -609,8 +610,9 @@ impl Panel {
     fn readouts(&self, ui: &mut egui::Ui) {
         let v = &self.view;
         for lane in &v.lanes {
+            // Joints that have lost torque (a trigger that took nothing is not damage).
             let triggered: Vec<&str> = (0..N_ACTUATORS)
-                .filter(|&i| lane.states[i] != JointState::Healthy)
+                .filter(|&i| Torque::of(lane.scale[i], lane.states[i]).lost())
                 .map(|i| lane.joint_names[i].as_str())
                 .collect();
             let title = match &lane.fork_of {
@@ -654,7 +656,8 @@ impl Panel {
                         } else {
                             Color32::from_rgb(220, 80, 60)
                         };
-                        let mark = if damaged { "■" } else { "□" };
+                        // Plain words: egui's bundled fonts have no ■/□ (they drew empty boxes).
+                        let mark = if damaged { " lost" } else { " ok" };
                         let word = |d: bool| if d { "damaged" } else { "healthy" };
                         ui.colored_label(color, format!("{} {prob:.2}{mark}", short_name(name)))
                             .on_hover_text(format!(
@@ -685,29 +688,34 @@ fn short_name(joint: &str) -> String {
     joint.replace("hip_", "h").replace("ankle_", "a")
 }
 
-fn state_text(state: JointState) -> (&'static str, Color32) {
+/// A joint's torque in words and in the colour its leg has in every view (palette): what it
+/// has lost, and who took it (a fatigue trigger, the world, a hand).
+fn state_text(scale: f64, state: JointState) -> (String, Color32) {
+    let torque = Torque::of(scale, state);
+    let mut text = torque.describe();
     match state {
-        JointState::Healthy => ("healthy", Color32::from_rgb(80, 170, 90)),
-        JointState::Triggered => ("triggered", Color32::from_rgb(220, 60, 50)),
-        JointState::Manual => ("manual", Color32::from_rgb(160, 90, 220)),
-        JointState::Dead => ("dead", Color32::from_rgb(110, 110, 120)),
+        JointState::Triggered if !torque.lost() => text += " (triggered, nothing lost)",
+        JointState::Triggered => text += " (triggered)",
+        JointState::Dead => text += " (the world)",
+        JointState::Healthy | JointState::Manual => {}
     }
+    let [r, g, b] = torque.rgb();
+    (text, Color32::from_rgb(r, g, b))
 }
 
-/// Fatigue as a bar over 0 … 1.5 τ, with the threshold marked; red once the joint is damaged.
-fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64, state: JointState) {
+/// Fatigue as a bar over 0 … 1.5 τ, with the threshold marked: green, amber from 0.8 τ (the
+/// torque column beside it says what the joint has lost).
+fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64) {
     let size = egui::vec2(96.0, ui.spacing().interact_size.y * 0.8);
     let (rect, response) = ui.allocate_exact_size(size, egui::Sense::hover());
     let span = (threshold * BAR_SPAN).max(f64::EPSILON);
     let frac = (fatigue / span).clamp(0.0, 1.0) as f32;
     let painter = ui.painter();
     painter.rect_filled(rect, 2.0, ui.visuals().extreme_bg_color);
-    let fill = match state {
-        JointState::Healthy if fatigue < threshold * 0.8 => Color32::from_rgb(90, 160, 90),
-        JointState::Healthy => Color32::from_rgb(230, 170, 40),
-        JointState::Triggered => Color32::from_rgb(210, 60, 50),
-        JointState::Manual => Color32::from_rgb(150, 80, 210),
-        JointState::Dead => Color32::from_rgb(110, 110, 120),
+    let fill = if fatigue < threshold * 0.8 {
+        Color32::from_rgb(90, 160, 90)
+    } else {
+        Color32::from_rgb(230, 170, 40)
     };
     let mut filled = rect;
     filled.set_width(rect.width() * frac);

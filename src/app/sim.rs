@@ -125,7 +125,7 @@ pub struct LaneView {
     pub distance: f64,
     pub success: bool,
     pub done: bool,
-    /// How the episode ended ("success", "fell", "timeout", …), once it has.
+    /// How the episode ended ("success", "leapt", "timeout", … : [`crate::env::Ending`]), once it has.
     pub ending: Option<&'static str>,
     pub joint_names: [String; N_ACTUATORS],
     /// The model's named bodies, what a push may name.

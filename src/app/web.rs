@@ -885,8 +885,14 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
         .map(|l| {
             let joints: Vec<Value> = (0..l.joint_names.len())
                 .map(|i| {
+                    // What the joint has lost, in the words and colour of every view.
+                    let torque = crate::palette::Torque::of(l.scale[i], l.states[i]);
+                    let [r, g, b] = torque.rgb();
                     json!({
                         "name": l.joint_names[i],
+                        "torque": torque.describe(),
+                        "torque_lost": torque.lost(),
+                        "color": format!("#{r:02x}{g:02x}{b:02x}"),
                         "leg": l.joint_legs[i],
                         "fatigue": l.fatigue[i],
                         "state": state_name(l.states[i]),

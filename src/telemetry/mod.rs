@@ -34,8 +34,9 @@ use rerun::blueprint::{
 use rerun::{RecordingStream, RecordingStreamBuilder};
 use std::path::PathBuf;
 
-use crate::damage::{DamageEventKind, JointState, N_ACTUATORS};
+use crate::damage::{DamageEventKind, N_ACTUATORS};
 use crate::env::{AntEnv, StepOutcome};
+use crate::palette::{self, LegTorque, Torque};
 use crate::probe::ProbeFile;
 
 mod session;
@@ -55,15 +56,65 @@ const FOCUS_RADIUS: f32 = 2.5;
 const FOCUS_SEGMENTS: usize = 32;
 /// Log the trail (torso path, PCA path) every this many steps: bounded bytes per step.
 pub const TRAIL_EVERY: usize = 5;
-/// A foot's stance states in the gait diagram, by the worst state of its leg's two joints.
-pub const GAIT_STATES: [&str; 3] = [
-    "stance (healthy leg)",
-    "stance (triggered)",
-    "stance (manual)",
+/// A foot's stance states in the gait diagram, by the torque its leg's worst joint has left
+/// (the same colours as the legs): what a person reads as "this leg is damaged".
+pub const GAIT_STATES: [&str; 4] = [
+    LegTorque::Full.stance_name(),
+    LegTorque::Reduced.stance_name(),
+    LegTorque::Dead.stance_name(),
+    LegTorque::Pinned.stance_name(),
 ];
 /// Swing: an empty state, which the state view draws as a gap. Not a null: the state column is
 /// non-nullable, and nulls made every recording fail `rerun rrd verify`.
 pub const GAIT_SWING: &str = "";
+
+/// Where the recording's key lives (a static markdown document, [`key_markdown`]).
+pub const KEY_ENTITY: &str = "key";
+
+/// The PCA points' colour, in words (the key's line).
+pub const PCA_KEY: &str = "points coloured by the number of joints that have lost torque: 0 dark purple → 8 yellow (viridis)";
+
+/// The key to every colour in the views, for lanes given as (model label, hue index): which
+/// line and trail is which model, what a leg's colour means, the gait, probe and PCA views,
+/// and the endings' words.
+pub fn key_markdown(lanes: &[(String, usize)], probe: bool) -> String {
+    let mut md = String::from("**Models** — trail, goal-distance line; with several models, ");
+    md += "each one's plot lines are shades of its colour, its joints dark → light (hip_1 … ankle_4)  \n";
+    for (label, hue) in lanes {
+        md += &format!("- **{}**: {label}\n", palette::model_hue_name(*hue));
+    }
+    md += "\n**Legs and gait bars** — the torque a joint has left (never fatigue alone)  \n";
+    md += "- **green**: full torque (a fatigue trigger that takes nothing, as under `healthy`, stays green)\n";
+    md += "- **amber → red**: torque lost, scale just under 1 → near 0\n";
+    md += "- **slate**: dead (scale 0)\n";
+    md += "- **violet**: pinned by hand (panel, page, fork)\n";
+    md += "\n**Gait**: a bar while the foot is on the floor, a gap while it swings, tinted by the leg's worst joint.  \n";
+    if probe {
+        md += "**Probe**: lines are P(damaged) read from z, crosses the truth (1 = the joint has lost torque), one colour per joint.  \n";
+        md += &format!("**PCA of z**: {PCA_KEY}.  \n");
+    }
+    md += "**Endings**: ";
+    md += &crate::env::Ending::ALL
+        .iter()
+        .map(|e| format!("{} = {}", e.name().to_uppercase(), e.meaning()))
+        .collect::<Vec<_>>()
+        .join("; ");
+    md += ".\n";
+    md
+}
+
+/// Logs the key ([`key_markdown`]) as static data: it describes the whole recording.
+pub fn log_key(
+    rec: &RecordingStream,
+    lanes: &[(String, usize)],
+    probe: bool,
+) -> Result<(), TelemetryError> {
+    rec.log_static(
+        KEY_ENTITY,
+        &rerun::TextDocument::from_markdown(key_markdown(lanes, probe)),
+    )?;
+    Ok(())
+}
 
 /// The time-series entities under a lane's root (what [`AntLogger::log_series_gap`] breaks).
 pub const SERIES_ENTITIES: [&str; 11] = [
@@ -354,23 +405,68 @@ pub fn layout_for(
         }
     };
     let (why_path, grid_path) = (view_path(&why), view_path(&why_grid));
-    let progress =
-        series(TimeSeriesView::new("Goal distance").with_contents(paths(&["goal/distance"])));
     let probe = series(
         TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"])),
     );
+    // Its legend stays, top right: one line per model, named by it — the models' key.
+    let progress: rerun::blueprint::ContainerLike = TimeSeriesView::new("Goal distance (m)")
+        .with_contents(paths(&["goal/distance"]))
+        .into();
+    if let Some(path) = view_path(&progress) {
+        properties.push((
+            format!("{path}/PlotLegend"),
+            Box::new(
+                rerun::external::re_sdk_types::blueprint::archetypes::PlotLegend::new()
+                    .with_visible(true)
+                    .with_corner(
+                        rerun::external::re_sdk_types::blueprint::components::Corner2D::RightTop,
+                    ),
+            ),
+        ));
+    }
     let pca = Spatial2DView::new("z in PCA basis")
         .with_contents(paths(&["latent/pca", "latent/pca_trail"]));
     let pca3 = Spatial3DView::new("z in PCA basis, 3-D")
         .with_contents(paths(&["latent/pca3", "latent/pca3_trail"]));
-    let events = TextLogView::new("Damage events").with_contents(paths(&["events"]));
+    let events: rerun::blueprint::ContainerLike = TextLogView::new("Damage events")
+        .with_contents(paths(&["events"]))
+        .into();
+    if let Some(path) = view_path(&events) {
+        // The text before the entity path: a narrow view cut the path to "/enc…" and the text
+        // with it; each text names its lane's model anyway.
+        use rerun::external::re_sdk_types::blueprint::encodings::{
+            TextLogColumn, TextLogColumnKind,
+        };
+        let column = |kind| TextLogColumn {
+            kind,
+            visible: true.into(),
+        };
+        properties.push((
+            format!("{path}/TextLogColumns"),
+            Box::new(
+                rerun::external::re_sdk_types::blueprint::archetypes::TextLogColumns::new()
+                    .with_text_log_columns([
+                        column(TextLogColumnKind::LogLevel),
+                        column(TextLogColumnKind::Body),
+                        column(TextLogColumnKind::EntityPath),
+                    ]),
+            ),
+        ));
+    }
+    let key = rerun::blueprint::TextDocumentView::new("Key: what each colour means")
+        .with_contents([format!("/{KEY_ENTITY}")]);
     let gait = rerun::blueprint::StateTimelineView::new("Gait: stance per leg")
         .with_contents(paths(&["gait/**"]));
     let blueprint = Blueprint::new(
         Horizontal::new([
-            Vertical::new([world, events.into()])
-                .with_row_shares([3.0, 1.0])
-                .into(),
+            Vertical::new([
+                world,
+                Horizontal::new([events, key.into()])
+                    .with_column_shares([1.4, 1.0])
+                    .into(),
+            ])
+            .with_row_shares([3.0, 1.2])
+            .into(),
             Vertical::new([gait.into(), fatigue, scale, progress])
                 .with_row_shares([1.5, 1.0, 1.0, 1.0])
                 .into(),
@@ -504,7 +600,7 @@ pub struct AntLogger {
     static_logged: bool,
     dt: f64,
     threshold: f64,
-    /// PCA point colour by number of triggered joints (0..=8), as in the probe's PCA figure.
+    /// PCA point colour by the number of joints with torque lost (0..=8; [`PCA_KEY`]).
     pca_palette: Vec<rerun::Color>,
     /// Where this model's world is drawn, so side-by-side Ants do not overlap.
     world_offset: [f32; 3],
@@ -533,51 +629,16 @@ pub struct SeriesStyle {
     pub family: usize,
 }
 
-/// The `i`-th of `n` shades of hue family `family`: one hue, lightness from dark to light, so a
-/// lane's lines read as one colour and the joints within it still differ.
+/// The `i`-th of `n` shades of lane `family`'s hue ([`palette::model_shade`]), as RGBA.
 pub fn family_color(family: usize, i: usize, n: usize) -> [u8; 4] {
-    const HUES: [f64; 4] = [24.0, 212.0, 125.0, 285.0];
-    let hue = HUES[family % HUES.len()];
-    let light = if n <= 1 {
-        0.45
-    } else {
-        0.28 + 0.42 * i as f64 / (n - 1) as f64
-    };
-    let [r, g, b] = hsl_to_rgb(hue, 0.8, light);
+    let [r, g, b] = palette::model_shade(family, i, n);
     [r, g, b, 255]
 }
 
-/// HSL (hue in degrees, saturation and lightness in 0..=1) to 8-bit RGB.
-fn hsl_to_rgb(hue: f64, sat: f64, light: f64) -> [u8; 3] {
-    let c = (1.0 - (2.0 * light - 1.0).abs()) * sat;
-    let h = hue.rem_euclid(360.0) / 60.0;
-    let x = c * (1.0 - (h % 2.0 - 1.0).abs());
-    let (r, g, b) = match h as u32 {
-        0 => (c, x, 0.0),
-        1 => (x, c, 0.0),
-        2 => (0.0, c, x),
-        3 => (0.0, x, c),
-        4 => (x, 0.0, c),
-        _ => (c, 0.0, x),
-    };
-    let m = light - c / 2.0;
-    let to8 = |v: f64| ((v + m) * 255.0).round().clamp(0.0, 255.0) as u8;
-    [to8(r), to8(g), to8(b)]
-}
-
-/// Colour of a leg segment: green → amber as fatigue nears τ (in tenths), red once triggered,
-/// purple when set by hand.
-pub fn damage_color(state: JointState, fatigue: f64, threshold: f64) -> [u8; 4] {
-    match state {
-        JointState::Triggered => [220, 40, 40, 255],
-        JointState::Manual => [150, 70, 200, 255],
-        JointState::Dead => [70, 70, 80, 255],
-        JointState::Healthy => {
-            let f = ((fatigue / threshold).clamp(0.0, 1.0) * 10.0).floor() as f32 / 10.0;
-            let lerp = |a: f32, b: f32| (a + (b - a) * f) as u8;
-            [lerp(60.0, 240.0), 170, lerp(90.0, 30.0), 255]
-        }
-    }
+/// A leg segment's colour: the torque its joint has left ([`Torque`]), never fatigue or a
+/// trigger that took nothing (fatigue has its own plot).
+pub fn leg_color(scale: f64, state: crate::damage::JointState) -> [u8; 4] {
+    Torque::of(scale, state).rgba()
 }
 
 fn color([r, g, b, a]: [u8; 4]) -> rerun::Color {
@@ -670,6 +731,11 @@ impl AntLogger {
         Ok(())
     }
 
+    /// This lane's hue ([`palette::model`]): its family among several lanes, else the first.
+    fn hue(&self) -> usize {
+        self.series_style.as_ref().map_or(0, |s| s.family)
+    }
+
     /// Draws this model's world (floor, goal, Ant) shifted by `offset` metres.
     pub fn with_world_offset(mut self, offset: [f32; 3]) -> Self {
         self.world_offset = offset;
@@ -696,12 +762,11 @@ impl AntLogger {
 
     fn log_static(&mut self, env: &AntEnv) -> Result<(), TelemetryError> {
         let rec = &self.rec;
-        // Stance colours as the legs' damage colours: healthy, triggered, manual.
-        let stance_colors = [
-            damage_color(JointState::Healthy, 0.0, 1.0),
-            damage_color(JointState::Triggered, 0.0, 1.0),
-            damage_color(JointState::Manual, 0.0, 1.0),
-        ];
+        // Stance tinted as the legs are: full torque, torque lost, dead, pinned.
+        let stance_colors = LegTorque::ALL.map(|l| {
+            let [r, g, b] = l.rgb();
+            [r, g, b, 255]
+        });
         for name in env.leg_names() {
             rec.log_static(
                 self.path(&format!("gait/{name}")).as_str(),
@@ -799,6 +864,18 @@ impl AntLogger {
                 None => series,
             }
         };
+        // The probe's joints, one colour each (shades of the lane's hue among several lanes):
+        // the prediction a line, the truth crosses of the same colour.
+        let joint_colors: Vec<rerun::Color> = (0..N_ACTUATORS)
+            .map(|i| match style {
+                Some(s) => color(family_color(s.family, i, N_ACTUATORS)),
+                None => {
+                    let [r, g, b] =
+                        palette::hsl_to_rgb(360.0 * i as f64 / N_ACTUATORS as f64, 0.75, 0.45);
+                    rerun::Color::from_rgb(r, g, b)
+                }
+            })
+            .collect();
         let joints: Vec<String> = self.joint_names.iter().map(|j| name(j)).collect();
         let probed = self.probe.is_some();
         let mut entities: Vec<(&str, Vec<String>)> = vec![
@@ -814,19 +891,39 @@ impl AntLogger {
                     .collect(),
             ),
         ];
-        if probed {
-            entities.push(("probe/predicted", joints.clone()));
-            entities.push(("probe/truth", joints.clone()));
-        }
         if style.is_some() {
             // One line each: the lane's name says whose it is.
             entities.push(("joints/threshold", vec![name("threshold τ")]));
-            entities.push(("goal/distance", vec![name("goal distance")]));
             entities.push(("goal/progress_rate", vec![name("progress rate")]));
         }
         for (leaf, names) in entities {
             self.rec
                 .log_static(self.path(leaf).as_str(), &lines(names))?;
+        }
+        // Goal distance: one line per lane in the lane's own colour, named by its model (the
+        // view's legend, shown, is the models' key).
+        let [r, g, b] = palette::model(self.hue());
+        self.rec.log_static(
+            self.path("goal/distance").as_str(),
+            &rerun::SeriesLines::new()
+                .with_names([name("goal distance")])
+                .with_colors([rerun::Color::from_rgb(r, g, b)]),
+        )?;
+        if probed {
+            self.rec.log_static(
+                self.path("probe/predicted").as_str(),
+                &rerun::SeriesLines::new()
+                    .with_names(joints.iter().map(|j| format!("P(damaged) {j}")))
+                    .with_colors(joint_colors.clone()),
+            )?;
+            self.rec.log_static(
+                self.path("probe/truth").as_str(),
+                &rerun::SeriesPoints::new()
+                    .with_names(joints.iter().map(|j| format!("truth {j}")))
+                    .with_colors(joint_colors)
+                    .with_markers([rerun::components::MarkerShape::Cross; N_ACTUATORS])
+                    .with_marker_sizes([3.0; N_ACTUATORS]),
+            )?;
         }
         Ok(())
     }
@@ -959,11 +1056,7 @@ impl AntLogger {
             translations.push(p - axis * c.half_length);
             rotations.push(rerun::Quaternion::from_xyzw(q.to_array()));
             colors.push(match c.actuator {
-                Some(i) => color(damage_color(
-                    record.joint_states[i],
-                    record.fatigue[i],
-                    self.threshold,
-                )),
+                Some(i) => color(leg_color(record.scales[i], record.joint_states[i])),
                 None => color(c.rgba),
             });
         }
@@ -1010,10 +1103,10 @@ impl AntLogger {
                 .copied()
                 .chain(self.trail.last().copied())
                 .collect();
+            let [r, g, b] = palette::model(self.hue());
             self.rec.log(
                 self.path("world/trail").as_str(),
-                &rerun::LineStrips3D::new([path])
-                    .with_colors([rerun::Color::from_rgb(90, 120, 220)]),
+                &rerun::LineStrips3D::new([path]).with_colors([rerun::Color::from_rgb(r, g, b)]),
             )?;
         }
         // Joints and actions, one 8-wide batch each (series named by joint).
@@ -1036,15 +1129,12 @@ impl AntLogger {
         // foot is on the floor, a gap (an empty state) while it swings; logged on changes only.
         for (leg, name) in env.leg_names().iter().enumerate() {
             let state = if record.contacts[leg] {
-                let joints = (0..N_ACTUATORS).filter(|&i| env.leg_of_actuator()[i] == leg);
-                let states: Vec<JointState> = joints.map(|i| record.joint_states[i]).collect();
-                if states.contains(&JointState::Triggered) {
-                    GAIT_STATES[1]
-                } else if states.contains(&JointState::Manual) {
-                    GAIT_STATES[2]
-                } else {
-                    GAIT_STATES[0]
-                }
+                LegTorque::of(
+                    (0..N_ACTUATORS)
+                        .filter(|&i| env.leg_of_actuator()[i] == leg)
+                        .map(|i| Torque::of(record.scales[i], record.joint_states[i])),
+                )
+                .stance_name()
             } else {
                 GAIT_SWING
             };
@@ -1059,10 +1149,13 @@ impl AntLogger {
         // This step's events, as text (the state changes are in the series above).
         // The text's step is the row's (the `step` column), so the two never disagree.
         for e in &record.events {
+            // A warning only where torque was lost: under the healthy condition a trigger
+            // keeps scale 1 and is news, not damage.
             let level = match &e.kind {
-                DamageEventKind::Trigger => rerun::TextLogLevel::WARN,
-                DamageEventKind::Dead => rerun::TextLogLevel::WARN,
-                DamageEventKind::Override { .. } => rerun::TextLogLevel::INFO,
+                DamageEventKind::Trigger | DamageEventKind::Dead if e.scale < 1.0 => {
+                    rerun::TextLogLevel::WARN
+                }
+                _ => rerun::TextLogLevel::INFO,
             };
             let text = format!("step {}: {}", self.now_step, e.describe());
             self.rec.log(
@@ -1106,9 +1199,9 @@ impl AntLogger {
                 let z64: Vec<f64> = z.iter().map(|&v| v as f64).collect();
                 let p = probe.pca.project(&z64);
                 let axis = |k: usize| p.get(k).copied().unwrap_or(0.0) as f32;
-                // Coloured by the number of triggered joints, as in the probe's PCA figure.
-                let n_triggered = record.triggered.iter().filter(|&&t| t).count();
-                let current = self.pca_palette[n_triggered];
+                // Coloured by the number of joints that have lost torque (the key says so).
+                let n_lost = record.scales.iter().filter(|&&s| s < 1.0).count();
+                let current = self.pca_palette[n_lost];
                 self.pca_trail.push(([axis(0), axis(1), axis(2)], current));
                 self.rec.log(
                     self.path("latent/pca").as_str(),
@@ -1246,7 +1339,7 @@ impl AntLogger {
                 &rerun::SeriesLines::new()
                     .with_names(names.iter().map(|g| format!("{g} → ‖z − z(0)‖")))
                     .with_colors((0..n).map(|i| {
-                        let [r, g, b] = hsl_to_rgb(360.0 * i as f64 / n as f64, 0.75, 0.6);
+                        let [r, g, b] = palette::hsl_to_rgb(360.0 * i as f64 / n as f64, 0.75, 0.6);
                         rerun::Color::from_rgb(r, g, b)
                     })),
             )?;
@@ -1331,10 +1424,9 @@ mod tests {
 
     #[test]
     fn hsl_primaries_and_family_shades() {
-        assert_eq!(super::hsl_to_rgb(0.0, 1.0, 0.5), [255, 0, 0]);
-        assert_eq!(super::hsl_to_rgb(120.0, 1.0, 0.5), [0, 255, 0]);
-        assert_eq!(super::hsl_to_rgb(240.0, 1.0, 0.5), [0, 0, 255]);
-        assert_eq!(super::hsl_to_rgb(60.0, 0.0, 0.5), [128, 128, 128]);
+        use crate::palette::hsl_to_rgb;
+        assert_eq!(hsl_to_rgb(240.0, 1.0, 0.5), [0, 0, 255]);
+        assert_eq!(hsl_to_rgb(60.0, 0.0, 0.5), [128, 128, 128]);
         // Shades of one family run dark to light.
         let shades: Vec<[u8; 4]> = (0..8).map(|i| super::family_color(1, i, 8)).collect();
         let lum = |c: &[u8; 4]| c[0] as u32 + c[1] as u32 + c[2] as u32;

@@ -245,6 +245,7 @@ impl Session {
     fn style_lanes(&mut self) -> Result<(), RecordError> {
         let several = self.lanes.len() > 1;
         let labels: Vec<String> = self.lanes.iter().map(Lane::series_label).collect();
+        let mut keyed = Vec::new();
         for (k, lane) in self.lanes.iter_mut().enumerate() {
             // The model's name; with the lane's root where two lanes share a model.
             let shared = labels.iter().filter(|l| **l == labels[k]).count() > 1;
@@ -253,9 +254,12 @@ impl Session {
             } else {
                 labels[k].clone()
             };
+            keyed.push((label.clone(), k));
             let style = several.then_some(super::SeriesStyle { label, family: k });
             lane.logger.set_series_style(style)?;
         }
+        let probe = self.lanes.iter().any(|l| l.logger.probe().is_some());
+        super::log_key(&self.rec, &keyed, probe)?;
         Ok(())
     }
 

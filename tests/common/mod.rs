@@ -80,6 +80,26 @@ pub fn text_log(chunks: &[Chunk], entity: &str) -> Vec<(i64, String)> {
     .collect()
 }
 
+/// (step, level, text) of every TextLog row of `entity`.
+pub fn text_log_levels(chunks: &[Chunk], entity: &str) -> Vec<(i64, String, String)> {
+    let text = rerun::TextLog::descriptor_text().component;
+    let level = rerun::TextLog::descriptor_level().component;
+    per_step(chunks, entity, |c| {
+        c.iter_slices::<String>(text)
+            .zip(c.iter_slices::<String>(level))
+            .map(|(t, l)| {
+                t.iter()
+                    .zip(l.iter())
+                    .map(|(t, l)| (l.to_string(), t.to_string()))
+                    .collect::<Vec<_>>()
+            })
+            .collect()
+    })
+    .into_iter()
+    .flat_map(|(t, rows)| rows.into_iter().map(move |(l, x)| (t, l, x)))
+    .collect()
+}
+
 /// Runs the gaitscope binary with `args`: its stdout's JSON lines, or its stderr if it failed.
 pub fn gaitscope_json_lines<I, S>(args: I) -> Result<Vec<serde_json::Value>, String>
 where
@@ -181,52 +201,55 @@ pub fn leg_colors(
     .collect()
 }
 
-/// Checks every leg colour under `root` against the damage palette applied to the recording's
-/// own fatigue and torque-scale series at that step (`manual`: joints pinned by hand, by
-/// actuator index, from that step on). Returns how many (step, joint) pairs were red.
-pub fn check_leg_colors(
-    chunks: &[Chunk],
-    root: &str,
-    threshold: f64,
-    manual: &[(i64, usize)],
-) -> usize {
-    use gaitscope::damage::JointState;
-    use gaitscope::telemetry::damage_color;
+/// The colour a leg segment must have for a joint at torque `scale` (pinned by hand or not),
+/// by hand from the key's end points: green at full torque, amber (235, 190, 50) a sliver lost
+/// to red (215, 35, 35) nearly all lost, slate at 0, violet when pinned — whatever fatigue says.
+pub fn expected_leg_color(scale: f64, pinned: bool) -> [u8; 4] {
+    let rgb = if pinned {
+        [150, 80, 210]
+    } else if scale >= 1.0 {
+        [70, 170, 90]
+    } else if scale <= 0.0 {
+        [55, 60, 75]
+    } else {
+        let lost = 1.0 - scale;
+        let mix = |a: f64, b: f64| (a + (b - a) * lost).round() as u8;
+        [mix(235.0, 215.0), mix(190.0, 35.0), mix(50.0, 35.0)]
+    };
+    [rgb[0], rgb[1], rgb[2], 255]
+}
+
+/// Checks every leg colour under `root` against the torque the recording's own scale series
+/// says each joint has left at that step (`manual`: joints pinned by hand, by actuator index,
+/// from that step on). Returns how many (step, joint) pairs had lost torque.
+pub fn check_leg_colors(chunks: &[Chunk], root: &str, manual: &[(i64, usize)]) -> usize {
     let joints: Vec<String> = gaitscope::env::AntEnv::new(gaitscope::GaitConfig::default(), 0)
         .unwrap()
         .actuators()
         .iter()
         .map(|a| a.joint.clone())
         .collect();
-    let fatigue = joint_series(chunks, &format!("{root}/joints/fatigue"));
     let scale = joint_series(chunks, &format!("{root}/joints/scale"));
     let colors = leg_colors(chunks, root);
     assert!(!colors.is_empty(), "{root}: leg colours per step");
-    let mut red = 0;
+    let mut lost = 0;
     for (step, row) in &colors {
-        let (Some(f), Some(s)) = (fatigue.get(step), scale.get(step)) else {
+        let Some(s) = scale.get(step) else {
             continue; // a reset frame: no step values yet
         };
         for (i, joint) in joints.iter().enumerate() {
             let geom = JOINT_GEOMS.iter().find(|(j, _)| j == joint).unwrap().1;
-            let state = if manual.iter().any(|&(at, a)| a == i && *step >= at) {
-                JointState::Manual
-            } else if s[i] < 1.0 {
-                JointState::Triggered
-            } else {
-                JointState::Healthy
-            };
-            red += usize::from(state == JointState::Triggered);
+            let pinned = manual.iter().any(|&(at, a)| a == i && *step >= at);
+            lost += usize::from(!pinned && s[i] < 1.0);
             assert_eq!(
                 row[geom],
-                damage_color(state, f[i], threshold),
-                "{root}: {geom} ({joint}) at step {step}, scale {}, fatigue {}",
+                expected_leg_color(s[i], pinned),
+                "{root}: {geom} ({joint}) at step {step}, scale {}",
                 s[i],
-                f[i]
             );
         }
     }
-    red
+    lost
 }
 
 /// The static series names of a plotted entity.
