@@ -367,6 +367,7 @@ pub fn bench_record(
             sink: Sink::File(path.clone()),
             start: None,
             attribution: false,
+            caption: None,
             fork: None,
         },
         &std::sync::atomic::AtomicBool::new(false),

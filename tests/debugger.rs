@@ -360,6 +360,7 @@ fn a_recording_holds_the_fork_lane() {
         sink: Sink::Memory,
         start: None,
         attribution: false,
+        caption: None,
         fork: Some(Fork {
             at: 30,
             edits: Edit::parse_list("fail:hip_1").unwrap(),

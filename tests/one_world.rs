@@ -117,6 +117,7 @@ fn a_checkpoint_runs_in_its_own_world_under_every_front_end() {
             sink: Sink::Memory,
             start: None,
             attribution: false,
+            caption: None,
             fork: None,
         },
         &std::sync::atomic::AtomicBool::new(false),

@@ -68,6 +68,7 @@ fn options(sink: Sink) -> RecordOptions {
         sink,
         start: None,
         attribution: false,
+        caption: None,
         fork: None,
     }
 }

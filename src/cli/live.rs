@@ -8,9 +8,11 @@ use super::{EnvArgs, fork_option};
 
 #[derive(Args)]
 pub(crate) struct LiveArgs {
-    /// Checkpoint to watch (any folder `gaitscope train` wrote).
-    #[arg(long, value_name = "DIR", default_value = "checkpoints/encoder-lstm")]
-    checkpoint: PathBuf,
+    /// Checkpoint to watch (any folder `gaitscope train` wrote). Default: the bundled
+    /// checkpoints/encoder-lstm, found from the working directory or else in the clone this
+    /// binary was built from.
+    #[arg(long, value_name = "DIR")]
+    checkpoint: Option<PathBuf>,
     /// A second checkpoint, side by side under the same damage (e.g. checkpoints/baseline).
     #[arg(long, value_name = "DIR")]
     compare: Option<PathBuf>,
@@ -20,9 +22,10 @@ pub(crate) struct LiveArgs {
         default_value = "severe"
     )]
     condition: gaitscope::app::LiveCondition,
-    /// Seed of the first episode (each next episode uses the next seed).
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
+    /// Seed of the first episode (each next episode uses the next seed). Default: the most
+    /// typical of seeds 0–7 for the checkpoints under the condition (printed; 0 for `manual`).
+    #[arg(long)]
+    seed: Option<u64>,
     /// Playback speed, a multiple of real time (20 env steps/s): 0.25 to 8.
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
@@ -88,7 +91,26 @@ pub(crate) struct LiveArgs {
     env: EnvArgs,
 }
 
-pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
+/// The bundled checkpoint a bare `live` watches: relative to the working directory where it
+/// exists there (a clone's root), else in the clone the binary was built from.
+fn bundled_checkpoint() -> Result<PathBuf> {
+    const BUNDLED: &str = "checkpoints/encoder-lstm";
+    let here = PathBuf::from(BUNDLED);
+    if here.join("checkpoint.json").is_file() {
+        return Ok(here);
+    }
+    let built = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(BUNDLED);
+    if built.join("checkpoint.json").is_file() {
+        return Ok(built);
+    }
+    bail!(
+        "no --checkpoint given, and the bundled {BUNDLED} is neither under the working directory \
+         nor at {}: pass --checkpoint DIR (any folder `gaitscope train` wrote)",
+        built.display()
+    )
+}
+
+pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
     use gaitscope::app::{self, viewer};
     use gaitscope::telemetry::{self, Sink};
     if !args.web && !cfg!(feature = "live") {
@@ -107,12 +129,31 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
     {
         bail!("--save {} should end in .rrd", path.display());
     }
+    let checkpoint = match args.checkpoint.take() {
+        Some(dir) => dir,
+        None => bundled_checkpoint()?,
+    };
     let config = args.env.load()?;
+    let seed = match (args.seed, args.condition) {
+        (Some(seed), _) => seed,
+        // By hand, nothing is typical: a person breaks what they like.
+        (None, app::LiveCondition::Manual) => 0,
+        (None, condition) => {
+            let mut actors = Vec::new();
+            for dir in std::iter::once(&checkpoint).chain(&args.compare) {
+                actors.push(gaitscope::lane::Actor::load(dir)?);
+            }
+            let mut typical = config.clone();
+            typical.env.max_episode_steps = args.max_steps;
+            typical.damage.condition = gaitscope::ConditionChoice::Fixed(condition.env_condition());
+            super::demo_seed(None, &actors, &typical)?.0
+        }
+    };
     let setup = app::LiveSetup {
-        checkpoint: args.checkpoint.clone(),
+        checkpoint: checkpoint.clone(),
         compare: args.compare.clone(),
         condition: args.condition,
-        seed: args.seed,
+        seed,
         speed: args.speed,
         step_limit: args.max_steps,
         mode: if args.sampled {
@@ -131,13 +172,13 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
     };
     // Check what can be checked before any window opens: the input first, then the display.
     setup.validate()?;
-    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
+    for dir in std::iter::once(&checkpoint).chain(&args.compare) {
         let requested = app::episode_config(&setup.config, setup.condition, setup.step_limit);
         args.env
             .note_unused(&gaitscope::lane::Actor::load(dir)?, &requested);
     }
     let mut checkpoints = app::discover_checkpoints(std::path::Path::new("checkpoints"));
-    for dir in std::iter::once(&args.checkpoint).chain(&args.compare) {
+    for dir in std::iter::once(&checkpoint).chain(&args.compare) {
         if !checkpoints.contains(dir) {
             checkpoints.push(dir.clone());
         }
@@ -151,7 +192,7 @@ pub(crate) fn live_command(args: LiveArgs) -> Result<()> {
         .map(|r| r.to_string())
         .collect();
     // The 3-D views titled by checkpoint (the lanes' roots are fixed names).
-    let labels: Vec<String> = std::iter::once(&args.checkpoint)
+    let labels: Vec<String> = std::iter::once(&checkpoint)
         .chain(&args.compare)
         .map(|dir| gaitscope::eval::model_label(dir))
         .collect();

@@ -104,3 +104,23 @@ pub(crate) fn suite_help() -> String {
     }
     help
 }
+
+/// The seed a demo starts from: the caller's, or for checkpoints the most typical of
+/// [`gaitscope::eval::typical::DEFAULT_CANDIDATES`] (printed, and the caption for the key).
+pub(crate) fn demo_seed(
+    seed: Option<u64>,
+    actors: &[gaitscope::lane::Actor],
+    config: &GaitConfig,
+) -> Result<(u64, Option<String>)> {
+    if let Some(seed) = seed {
+        return Ok((seed, None));
+    }
+    if actors.iter().any(|a| a.policy().is_none()) {
+        return Ok((0, None));
+    }
+    use gaitscope::eval::typical::{DEFAULT_CANDIDATES, typical_episode};
+    let pick = typical_episode(actors, config, DEFAULT_CANDIDATES)?;
+    let caption = pick.caption();
+    eprintln!("{caption}");
+    Ok((pick.seed, Some(caption)))
+}

@@ -31,8 +31,10 @@ pub(crate) struct VideoArgs {
     policy: BuiltinPolicy,
     #[arg(long, value_name = "healthy|mild|severe", default_value = "severe")]
     condition: Condition,
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
+    /// The episode's seed. Default: the most typical of seeds 0–7 for the checkpoints (printed);
+    /// 0 for a built-in policy.
+    #[arg(long)]
+    seed: Option<u64>,
     #[arg(long, default_value_t = 500)]
     max_steps: usize,
     /// The MP4 to write (written to FILE.mp4.partial, renamed when complete).
@@ -87,6 +89,9 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
     for a in std::iter::once(&actor).chain(&compare) {
         args.env.note_unused(a, &config);
     }
+    let actors: Vec<gaitscope::lane::Actor> =
+        std::iter::once(&actor).chain(&compare).cloned().collect();
+    let (seed, _) = super::demo_seed(args.seed, &actors, &config)?;
     let spec = FrameSpec {
         width: args.width,
         height: args.height,
@@ -100,7 +105,7 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
         actor,
         compare,
         config,
-        seed: args.seed,
+        seed,
         fork: super::fork_option(args.fork_at, args.fork.as_deref())?,
         start: super::start_state(args.init_state.as_deref())?,
     })?;

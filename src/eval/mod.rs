@@ -7,6 +7,7 @@
 
 pub mod seeds;
 pub mod stats;
+pub mod typical;
 
 use rayon::prelude::*;
 use serde::Serialize;
@@ -151,6 +152,8 @@ pub struct EpisodeRecord {
     pub success: bool,
     /// Ended by termination (a fall, or reaching the goal) rather than the step limit.
     pub terminated: bool,
+    /// How it ended ([`crate::env::Ending`]: success, leapt, collapsed, timeout, …).
+    pub ending: Option<crate::env::Ending>,
     pub steps: usize,
     /// Steps taken when the goal was reached.
     pub steps_to_success: Option<usize>,
@@ -391,6 +394,7 @@ pub fn run_lockstep(
                     seed: seeds[i],
                     success: out.success,
                     terminated: out.terminated,
+                    ending: out.ending,
                     steps: out.step + 1,
                     steps_to_success: out.success.then_some(out.step + 1),
                     final_distance: out.distance,

@@ -979,6 +979,11 @@ mod tests {
             seed: 0,
             success,
             terminated,
+            ending: Some(match (success, terminated) {
+                (true, _) => crate::env::Ending::Success,
+                (false, true) => crate::env::Ending::Leapt,
+                (false, false) => crate::env::Ending::Timeout,
+            }),
             steps,
             steps_to_success: success.then_some(steps),
             final_distance: 0.0,

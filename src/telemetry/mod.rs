@@ -41,8 +41,9 @@ use crate::probe::ProbeFile;
 
 mod session;
 pub use session::{
-    Actor, FORK_ROOT, HISTORY_CAP, Lane, LaneSnapshot, LaneSpec, PartialFile, RecordError,
-    RecordOptions, RecordSummary, RewindError, Session, model_roots, record, side_by_side_offset,
+    Actor, FORK_ROOT, HISTORY_CAP, Lane, LaneEnding, LaneSnapshot, LaneSpec, PartialFile,
+    RecordError, RecordOptions, RecordSummary, RewindError, Session, model_roots, record,
+    side_by_side_offset,
 };
 
 pub const APP_ID: &str = "gaitscope";
@@ -108,11 +109,14 @@ pub fn log_key(
     rec: &RecordingStream,
     lanes: &[(String, usize)],
     probe: bool,
+    caption: Option<&str>,
 ) -> Result<(), TelemetryError> {
-    rec.log_static(
-        KEY_ENTITY,
-        &rerun::TextDocument::from_markdown(key_markdown(lanes, probe)),
-    )?;
+    let mut md = String::new();
+    if let Some(caption) = caption {
+        md += &format!("**This episode**: {caption}\n\n");
+    }
+    md += &key_markdown(lanes, probe);
+    rec.log_static(KEY_ENTITY, &rerun::TextDocument::from_markdown(md))?;
     Ok(())
 }
 

@@ -203,6 +203,8 @@ pub struct Session {
     start: Option<std::sync::Arc<crate::lane::StartState>>,
     /// Log why z moved (integrated gradients of ‖z − z(0)‖) with every step of encoder lanes.
     attribution: bool,
+    /// Shown under the key ([`Self::set_caption`]).
+    caption: Option<String>,
 }
 
 impl Session {
@@ -235,6 +237,7 @@ impl Session {
             plot_roots,
             start: None,
             attribution: false,
+            caption: None,
         };
         session.style_lanes()?;
         Ok(session)
@@ -259,8 +262,14 @@ impl Session {
             lane.logger.set_series_style(style)?;
         }
         let probe = self.lanes.iter().any(|l| l.logger.probe().is_some());
-        super::log_key(&self.rec, &keyed, probe)?;
+        super::log_key(&self.rec, &keyed, probe, self.caption.as_deref())?;
         Ok(())
+    }
+
+    /// What the recording shows and why (under the key), e.g. how its episode was chosen.
+    pub fn set_caption(&mut self, caption: Option<String>) -> Result<(), RecordError> {
+        self.caption = caption;
+        self.style_lanes()
     }
 
     /// Keep every step's state of the current episode (up to [`HISTORY_CAP`]), so
@@ -607,6 +616,24 @@ impl Session {
         self.lanes.iter().all(|l| l.core.is_done())
     }
 
+    /// How each lane's current episode has ended so far (a lane still running: `ending` none).
+    pub fn endings(&self, episode: usize) -> Vec<LaneEnding> {
+        self.lanes
+            .iter()
+            .map(|l| {
+                let out = l.core.outcome();
+                LaneEnding {
+                    label: l.series_label(),
+                    episode,
+                    seed: self.seed,
+                    ending: out.and_then(|o| o.ending),
+                    steps: l.core.steps(),
+                    distance: out.map_or(l.core.env().goal_distance(), |o| o.distance),
+                }
+            })
+            .collect()
+    }
+
     /// The same hand-made change to every lane (forks included); it applies from the next step
     /// and is logged as an event with it.
     pub fn apply_override(
@@ -699,14 +726,43 @@ pub struct RecordOptions {
     pub start: Option<crate::lane::StartState>,
     /// Log why z moved with every step (encoder models).
     pub attribution: bool,
+    /// How the recorded episode was chosen ([`crate::eval::typical::TypicalPick::caption`]),
+    /// shown under the key.
+    pub caption: Option<String>,
 }
 
 /// Outcome of a recording.
 pub struct RecordSummary {
     pub steps: u64,
     pub episodes: usize,
+    /// How each lane's episode ended, episode by episode (what `record` prints).
+    pub endings: Vec<LaneEnding>,
     pub interrupted: bool,
     pub storage: Option<rerun::sink::MemorySinkStorage>,
+}
+
+/// How one lane's episode ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LaneEnding {
+    /// The lane's model (with "(fork)" for a fork lane).
+    pub label: String,
+    pub episode: usize,
+    pub seed: u64,
+    pub ending: Option<crate::env::Ending>,
+    pub steps: usize,
+    /// Goal distance at the end (m).
+    pub distance: f64,
+}
+
+impl std::fmt::Display for LaneEnding {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ending = self.ending.map_or("not ended", crate::env::Ending::name);
+        write!(
+            f,
+            "{}: {ending} after {} steps, {:.2} m from the goal (episode {}, seed {})",
+            self.label, self.steps, self.distance, self.episode, self.seed
+        )
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -856,8 +912,10 @@ pub fn record(
     let mut session = Session::new(rec, specs, opts.config)?;
     session.set_start_state(opts.start.map(std::sync::Arc::new));
     session.set_attribution(opts.attribution)?;
+    session.set_caption(opts.caption)?;
     let mut episodes_done = 0;
     let mut interrupted = false;
+    let mut endings = Vec::new();
     'episodes: for k in 0..opts.episodes {
         session.start_episode(opts.seed.wrapping_add(k as u64))?;
         let mut forked = false;
@@ -885,6 +943,7 @@ pub fn record(
                 steps: session.lanes()[0].env().steps(),
             });
         }
+        endings.extend(session.endings(k));
         episodes_done += 1;
     }
     match &file {
@@ -904,6 +963,7 @@ pub fn record(
     Ok(RecordSummary {
         steps: session.global_step(),
         episodes: episodes_done,
+        endings,
         interrupted,
         storage,
     })
