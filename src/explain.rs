@@ -244,7 +244,7 @@ pub fn explain_step(
     step: usize,
     target: Target,
     ig_steps: Option<usize>,
-) -> Result<(Attribution, Vec<FeatureGroup>), ExplainError> {
+) -> Result<Explained, ExplainError> {
     let Some(policy) = actor.policy() else {
         return Err(ExplainError::Input(
             "explain needs a checkpoint's policy".into(),
@@ -278,7 +278,38 @@ pub fn explain_step(
         }
         steps *= 2;
     };
-    Ok((attribution, feature_groups(lane.env().actuators())))
+    let damage = lane.env().damage();
+    let torque = (0..N_ACTUATORS)
+        .map(|i| {
+            let t = crate::palette::Torque::of(damage.scale()[i], damage.joint_state(i));
+            (damage.joint_names()[i].clone(), t.describe())
+        })
+        .collect();
+    Ok(Explained {
+        attribution,
+        groups: feature_groups(lane.env().actuators()),
+        window_filled: lane.window().filled(),
+        window_len: actor.context_len(),
+        condition: damage.condition(),
+        torque,
+        damage_onset: damage.damage_onset(),
+    })
+}
+
+/// One decision explained, with what a reader needs beside the numbers: how full the window
+/// was, and the damage at that step.
+#[derive(Debug, Clone)]
+pub struct Explained {
+    pub attribution: Attribution,
+    pub groups: Vec<FeatureGroup>,
+    /// Steps the window held at this decision (0 at step 0: a reset zero-pads it all).
+    pub window_filled: usize,
+    pub window_len: usize,
+    pub condition: crate::damage::Condition,
+    /// Each joint's torque at this step, in the views' words ("full torque", "scale 0.10").
+    pub torque: Vec<(String, String)>,
+    /// The first step run under damage, if any came by this step.
+    pub damage_onset: Option<usize>,
 }
 
 /// Interpolation points for [`z_shift_attribution`] beside a running sim: 32 keep completeness

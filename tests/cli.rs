@@ -783,3 +783,93 @@ fn curves_draw_a_model_per_colour_and_name_lost_log_lines() {
     let err = stderr(&result);
     assert!(err.contains("metrics.jsonl line 1"), "{err}");
 }
+
+/// The CLI's rough edges, each message read back (issue 46).
+#[test]
+fn cli_edges_say_why() {
+    let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/encoder-lstm");
+    // A conflict with its reason, not only the flags' names.
+    let dir = tempfile::tempdir().unwrap();
+    let state = write(dir.path(), "s.json", "{}");
+    for flag in [["--episodes", "3"], ["--seed", "4"]] {
+        let out = gaitscope(&[
+            "rollout",
+            "--checkpoint",
+            bundled,
+            "--init-state",
+            &state,
+            flag[0],
+            flag[1],
+        ]);
+        assert!(!out.status.success());
+        let err = stderr(&out);
+        assert!(
+            err.contains(&format!("{} does not apply with --init-state", flag[0]))
+                && err.contains("one episode"),
+            "{err}"
+        );
+    }
+    // An unknown joint suggests `all`.
+    let out = gaitscope(&[
+        "rollout",
+        "--checkpoint",
+        bundled,
+        "--episodes",
+        "1",
+        "--max-steps",
+        "5",
+        "--fork-at",
+        "2",
+        "--fork",
+        "heal:everything",
+    ]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(
+        err.contains("unknown joint 'everything'") && err.contains("or `all` for every joint"),
+        "{err}"
+    );
+    // explain at step 0 says the window is empty; later, the damage at that step and units.
+    let out = gaitscope(&["explain", "--checkpoint", bundled, "--step", "0"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    assert!(text.contains("the window is empty at step 0"), "{text}");
+    assert!(!text.contains("per window slot"), "{text}");
+    let out = gaitscope(&[
+        "explain",
+        "--checkpoint",
+        bundled,
+        "--step",
+        "60",
+        "--condition",
+        "severe",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    assert!(text.contains("condition severe; at this step"), "{text}");
+    assert!(text.contains("scale 0.10"), "{text}");
+    assert!(text.contains("in units of z"), "{text}");
+    assert!(text.contains("16 of 16 slots hold steps"), "{text}");
+    // One thread is one thread.
+    let out = gaitscope(&[
+        "eval",
+        "--checkpoint",
+        bundled,
+        "--episodes",
+        "1",
+        "--conditions",
+        "healthy",
+        "--max-steps",
+        "20",
+        "--threads",
+        "1",
+        "--out",
+        dir.path().join("eval").to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert!(
+        err.contains("1 thread)") && !err.contains("1 threads"),
+        "{err}"
+    );
+}

@@ -129,8 +129,9 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
             let secs = started.elapsed().as_secs_f64();
             let steps: usize = report.episodes.iter().map(|e| e.steps).sum();
             println!(
-                "{} episodes ({steps} env steps) in {secs:.1} s on {threads} threads: {:.1} episodes/s, {:.0} env steps/s",
+                "{} episodes ({steps} env steps) in {secs:.1} s on {threads} thread{}: {:.1} episodes/s, {:.0} env steps/s",
                 report.episodes.len(),
+                if threads == 1 { "" } else { "s" },
                 report.episodes.len() as f64 / secs,
                 steps as f64 / secs
             );

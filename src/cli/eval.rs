@@ -60,8 +60,9 @@ pub(crate) fn eval_command(args: EvalArgs) -> Result<()> {
     for (model, secs) in &report.wall_time_s {
         let n = opts.episodes * opts.conditions.len();
         eprintln!(
-            "{model}: {n} episodes in {secs:.1} s ({:.1} episodes/s, {threads} threads)",
-            n as f64 / secs
+            "{model}: {n} episodes in {secs:.1} s ({:.1} episodes/s, {threads} thread{})",
+            n as f64 / secs,
+            if threads == 1 { "" } else { "s" }
         );
     }
     for path in gaitscope::eval::write_outputs(&report, &args.out)? {

@@ -46,7 +46,7 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
     requested.env.max_episode_steps = requested.env.max_episode_steps.max(args.step + 1);
     let actor = gaitscope::lane::Actor::load(&args.checkpoint)?;
     args.env.note_unused(&actor, &requested);
-    let (a, groups) = explain_step(
+    let explained = explain_step(
         &actor,
         &requested,
         args.seed,
@@ -54,8 +54,9 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
         args.target,
         args.ig_steps,
     )?;
+    let (a, groups) = (&explained.attribution, &explained.groups);
     let per_slot = a.per_slot();
-    let per_group = a.per_group(&groups);
+    let per_group = a.per_group(groups);
     if args.json {
         let out = json!({
             "step": args.step,
@@ -67,6 +68,11 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
             "output": a.output,
             "baseline_output": a.baseline_output,
             "completeness_error": a.completeness_error(),
+            "window_filled": explained.window_filled,
+            "window_len": explained.window_len,
+            "condition": explained.condition.name(),
+            "torque": explained.torque.iter().map(|(j, t)| json!({"joint": j, "torque": t})).collect::<Vec<_>>(),
+            "damage_onset": explained.damage_onset,
             "summary": {
                 "per_slot": per_slot,
                 "per_group": per_group.iter().map(|(n, v)| json!({"group": n, "abs_attribution": v})).collect::<Vec<_>>(),
@@ -94,10 +100,43 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
         a.output.len(),
         a.completeness_error().iter().fold(0f64, |m, &e| m.max(e))
     );
-    if !per_slot.is_empty() {
+    // The damage at this decision, in the views' words.
+    let lost: Vec<String> = explained
+        .torque
+        .iter()
+        .filter(|(_, t)| t != "full torque")
+        .map(|(j, t)| format!("{j} {t}"))
+        .collect();
+    println!(
+        "condition {}; at this step {}{}",
+        explained.condition,
+        if lost.is_empty() {
+            "every joint has full torque".to_string()
+        } else {
+            lost.join(", ")
+        },
+        explained
+            .damage_onset
+            .map_or(String::new(), |s| format!(" (damage since step {s})"))
+    );
+    let unit = match args.target {
+        Target::Z => "in units of z, summed over its dims",
+        Target::Action => "in units of the action command (−1 … 1), summed over its dims",
+    };
+    if explained.window_filled == 0 && !per_slot.is_empty() {
         println!(
-            "\nper window slot (oldest first; slot {} is the latest step):",
-            per_slot.len() - 1
+            "\nthe window is empty at step {} (a reset zero-pads all {} slots, the integration's \
+             baseline itself): there is nothing in it to attribute, so every slot is 0",
+            args.step, explained.window_len
+        );
+    }
+    if !per_slot.is_empty() && explained.window_filled > 0 {
+        println!(
+            "\nper window slot ({unit}; oldest first, slot {} the latest step; {} of {} slots \
+             hold steps, the rest are the reset's zeros):",
+            per_slot.len() - 1,
+            explained.window_filled,
+            explained.window_len
         );
         for (t, v) in per_slot.iter().enumerate() {
             println!("  {t:>2}  {v:+.4}");
@@ -105,12 +144,12 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
     }
     if let Some(obs) = &a.obs_attribution {
         let total: f64 = obs.iter().flatten().map(|v| v.abs()).sum();
-        println!("\ncurrent observation: |attribution| {total:.4} in all");
+        println!("\ncurrent observation: |attribution| {total:.4} in all ({unit})");
     }
-    if per_slot.is_empty() {
+    if per_slot.is_empty() || explained.window_filled == 0 {
         return Ok(());
     }
-    println!("\nper window feature group (|attribution|, all slots and dims):");
+    println!("\nper window feature group (|attribution| {unit}, all slots):");
     let mut sorted = per_group;
     sorted.sort_by(|a, b| b.1.total_cmp(&a.1));
     for (name, v) in sorted {

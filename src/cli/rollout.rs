@@ -19,11 +19,13 @@ pub(crate) struct RolloutArgs {
     condition: Option<Condition>,
     #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random, conflicts_with = "init_state")]
     policy: BuiltinPolicy,
-    #[arg(long, default_value_t = 5, conflicts_with = "init_state")]
-    episodes: usize,
-    /// Episode k is reset with seed S + k.
-    #[arg(long, default_value_t = 0, conflicts_with = "init_state")]
-    seed: u64,
+    /// Episodes to run (default 5; with --init-state there is one, from that state).
+    #[arg(long, value_name = "N")]
+    episodes: Option<usize>,
+    /// Episode k is reset with seed S + k (default 0; not with --init-state, whose state is
+    /// the start).
+    #[arg(long, value_name = "S")]
+    seed: Option<u64>,
     /// Truncate episodes after this many steps (500, the evaluation's limit, as everywhere a
     /// policy runs; training alone uses the config's 1000).
     #[arg(long, default_value_t = 500)]
@@ -84,7 +86,23 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
         return Ok(());
     }
 
-    if args.episodes == 0 {
+    if args.init_state.is_some() {
+        // Said with the reason, where clap's conflict would only name the flags.
+        for (flag, given) in [
+            ("--episodes", args.episodes.is_some()),
+            ("--seed", args.seed.is_some()),
+        ] {
+            if given {
+                bail!(
+                    "{flag} does not apply with --init-state: an episode from a given state is \
+                     one episode, and its state (not a seed) is where it starts"
+                );
+            }
+        }
+    }
+    let episodes = args.episodes.unwrap_or(5);
+    let seed = args.seed.unwrap_or(0);
+    if episodes == 0 {
         bail!("--episodes must be at least 1");
     }
     if let Some(dir) = &args.checkpoint {
@@ -98,12 +116,12 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
             None => None,
         };
         // From a given state there is one episode to run (--episodes conflicts with it).
-        let episodes = if init.is_some() { 1 } else { args.episodes };
+        let episodes = if init.is_some() { 1 } else { episodes };
         for episode in 0..episodes {
             // A saved state's episode keeps its seed.
             let seed = match &init {
                 Some(gaitscope::lane::StartState::Saved(s)) => s.seed,
-                _ => args.seed.wrapping_add(episode as u64),
+                _ => seed.wrapping_add(episode as u64),
             };
             let start = match &init {
                 Some(state) => rollout::Start::State(state, args.condition),
@@ -136,9 +154,9 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
         }
         return Ok(());
     }
-    let mut env = AntEnv::new(config, args.seed)?;
-    for episode in 0..args.episodes {
-        let seed = args.seed.wrapping_add(episode as u64);
+    let mut env = AntEnv::new(config, seed)?;
+    for episode in 0..episodes {
+        let seed = seed.wrapping_add(episode as u64);
         let summary =
             rollout::run_builtin_episode_with(&mut env, args.policy, episode, seed, |r| {
                 step_line(&mut out, args.jsonl, r)

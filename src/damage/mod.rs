@@ -183,7 +183,7 @@ pub enum DamageError {
     BadScale(f64),
     #[error("fatigue {0} must be a finite number ≥ 0")]
     BadFatigue(f64),
-    #[error("unknown joint '{name}' (the Ant's joints: {known})")]
+    #[error("unknown joint '{name}' (the Ant's joints: {known}; or `all` for every joint)")]
     NoSuchJoint { name: String, known: String },
     #[error(
         "bad damage edit '{0}': expected none, heal:JOINT, fail:JOINT, fail:JOINT=S, scale:JOINT=S, \

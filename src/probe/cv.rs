@@ -312,6 +312,14 @@ impl ProbeReport {
 
     pub fn markdown(&self) -> String {
         let pct = |m: MeanSd| format!("{:.1} ± {:.1}", 100.0 * m.mean, 100.0 * m.sd);
+        // Over seeds: one seed has no spread to show (its "± 0.0" read as a measured zero).
+        let over_seeds = |m: MeanSd, n: usize| {
+            if n > 1 {
+                pct(m)
+            } else {
+                format!("{:.1} (one seed)", 100.0 * m.mean)
+            }
+        };
         let Some(first) = self.runs.first() else {
             return String::new();
         };
@@ -346,8 +354,8 @@ impl ProbeReport {
                     "| {group} | {} | {} | {} | {} |\n",
                     runs.len(),
                     c.name,
-                    pct(over(&|c| c.accuracy.mean)),
-                    pct(over(&|c| c.balanced_accuracy.mean))
+                    over_seeds(over(&|c| c.accuracy.mean), runs.len()),
+                    over_seeds(over(&|c| c.balanced_accuracy.mean), runs.len())
                 );
             }
         }
@@ -386,7 +394,7 @@ impl ProbeReport {
         }
         s += "\n**Per-joint probes from z** (effectively damaged: triggered with torque below 1; \
               every step; mean ± SD over folds)\n\n\
-              | run | joint | accuracy | balanced accuracy | majority class |\n|---|---|---:|---:|---:|\n";
+              | run | joint | accuracy | balanced accuracy | guessing the training folds' majority class |\n|---|---|---:|---:|---:|\n";
         for run in &self.runs {
             for j in &run.joints {
                 s += &format!(

@@ -158,14 +158,14 @@ impl ProbeFile {
             pct(self.chance)
         );
         s += &format!(
-            "| damaged vs not | {} / {} | majority {} |\n",
+            "| damaged vs not | {} / {} | the training set's majority class, on test: {} |\n",
             pct(self.damaged_from_z.test.accuracy),
             pct(self.damaged_from_z.test.balanced_accuracy),
             pct(self.damaged_from_z.majority.accuracy)
         );
         for j in &self.joints {
             s += &format!(
-                "| {} damaged | {} / {} | majority {} |\n",
+                "| {} damaged | {} / {} | the training set's majority class, on test: {} |\n",
                 j.name,
                 pct(j.test.accuracy),
                 pct(j.test.balanced_accuracy),
