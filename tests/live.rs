@@ -632,3 +632,71 @@ mod panel {
         sim.shutdown().unwrap();
     }
 }
+
+/// The lane's episode log (what the page lists in full): a hand-failed joint reads "manual"
+/// and its cause is "manual", not "triggered"; a push and the ending are there; fatigue
+/// triggers name fatigue; the web snapshot carries the same list.
+#[test]
+fn the_episode_log_lists_every_event_with_its_cause() {
+    let (_dir, sim, _storage) = started(LiveCondition::Severe);
+    step_once(&sim);
+    assert!(sim.send(Command::Override {
+        actuator: 5,
+        change: JointOverride::FailNow,
+    }));
+    assert!(sim.send(Command::Push(
+        gaitscope::damage::Push::new("torso", [0.0, 40.0, 0.0], 3).unwrap()
+    )));
+    let mut s = step_once(&sim);
+    let lane = &s.lanes[0];
+    let joint = lane.joint_names[5].clone();
+    assert_eq!(
+        lane.causes[5].as_deref(),
+        Some("manual"),
+        "{:?}",
+        lane.causes
+    );
+    let manual: Vec<_> = lane
+        .event_log
+        .iter()
+        .filter(|e| e.kind == "manual")
+        .collect();
+    assert_eq!(manual.len(), 1, "{:?}", lane.event_log);
+    assert!(
+        manual[0].text.contains(&format!("{joint} failed by hand"))
+            && manual[0].text.ends_with("(manual)"),
+        "{:?}",
+        manual[0]
+    );
+    assert!(
+        lane.event_log
+            .iter()
+            .any(|e| e.kind == "push" && e.text.contains("torso")),
+        "{:?}",
+        lane.event_log
+    );
+    // On to the end: fatigue triggers say so, and the ending closes the list.
+    while !s.lanes[0].done {
+        s = step_once(&sim);
+    }
+    let log = &s.lanes[0].event_log;
+    // Any fatigue trigger (the untrained test policy may leap first) names fatigue.
+    assert!(
+        log.iter()
+            .filter(|e| e.kind == "triggered")
+            .all(|e| e.text.ends_with("(fatigue)")),
+        "{log:?}"
+    );
+    let last = log.last().unwrap();
+    assert_eq!(last.kind, "ending", "{log:?}");
+    assert!(last.text.starts_with("ended: "), "{last:?}");
+    assert!(
+        log.windows(2).all(|w| w[0].step <= w[1].step),
+        "in step order"
+    );
+    let page = gaitscope::app::web::snapshot_json(&s);
+    let listed = page["lanes"][0]["event_log"].as_array().unwrap();
+    assert_eq!(listed.len(), log.len());
+    assert_eq!(listed[0]["text"], log[0].text.as_str());
+    sim.shutdown().unwrap();
+}

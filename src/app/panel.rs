@@ -389,7 +389,8 @@ impl Panel {
                         .on_hover_text(&lane.joint_legs[i])
                         .id;
                     fatigue_bar(ui, lane.fatigue[i], lane.threshold);
-                    let (text, color) = state_text(lane.scale[i], lane.states[i]);
+                    let (text, color) =
+                        state_text(lane.scale[i], lane.states[i], lane.causes[i].as_deref());
                     ui.colored_label(color, text);
                     let mut scale = lane.scale[i];
                     let slider = egui::Slider::new(&mut scale, 0.0..=1.0)
@@ -690,14 +691,15 @@ fn short_name(joint: &str) -> String {
 
 /// A joint's torque in words and in the colour its leg has in every view (palette): what it
 /// has lost, and who took it (a fatigue trigger, the world, a hand).
-fn state_text(scale: f64, state: JointState) -> (String, Color32) {
+fn state_text(scale: f64, state: JointState, cause: Option<&str>) -> (String, Color32) {
     let torque = Torque::of(scale, state);
     let mut text = torque.describe();
-    match state {
-        JointState::Triggered if !torque.lost() => text += " (triggered, nothing lost)",
-        JointState::Triggered => text += " (triggered)",
-        JointState::Dead => text += " (the world)",
-        JointState::Healthy | JointState::Manual => {}
+    match (cause, torque.lost()) {
+        (Some(cause), true) => text += &format!(" ({cause})"),
+        (Some(cause), false) if state == JointState::Triggered => {
+            text += &format!(" ({cause}, nothing lost)")
+        }
+        _ => {}
     }
     let [r, g, b] = torque.rgb();
     (text, Color32::from_rgb(r, g, b))

@@ -145,6 +145,10 @@ pub struct LaneView {
     pub applied: [f64; N_ACTUATORS],
     pub events: usize,
     pub last_event: Option<String>,
+    /// This episode's events, oldest first: damage (with who made it), pushes, the ending.
+    pub event_log: Vec<crate::telemetry::LogEntry>,
+    /// Who last changed each joint's torque: fatigue, the world, a scenario, manual.
+    pub causes: [Option<String>; N_ACTUATORS],
     /// For the fork lane: what it was forked from.
     pub fork_of: Option<String>,
 }
@@ -181,6 +185,8 @@ impl LaneView {
             applied: last.map_or([0.0; N_ACTUATORS], |o| o.applied_action),
             fork_of: lane.fork_of().map(str::to_string),
             events: damage.events().len(),
+            event_log: lane.event_log().to_vec(),
+            causes: damage.causes(),
             // Counted as the page's step counter counts: steps taken in this episode.
             last_event: damage
                 .events()

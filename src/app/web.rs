@@ -892,6 +892,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
                         "name": l.joint_names[i],
                         "torque": torque.describe(),
                         "torque_lost": torque.lost(),
+                        "cause": l.causes[i],
                         "color": format!("#{r:02x}{g:02x}{b:02x}"),
                         "leg": l.joint_legs[i],
                         "fatigue": l.fatigue[i],
@@ -919,6 +920,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
                 "joints": joints,
                 "events": l.events,
                 "last_event": l.last_event,
+                "event_log": l.event_log.iter().map(|e| json!({"step": e.step, "kind": e.kind, "text": e.text})).collect::<Vec<_>>(),
                 "fork_of": l.fork_of,
             })
         })

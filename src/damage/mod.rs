@@ -161,6 +161,19 @@ impl DamageEvent {
     }
 }
 
+impl DamageEvent {
+    /// Who made the change, in the views' words: fatigue, the world (a dead actuator), a
+    /// scenario, or a hand (panel, page, API, fork).
+    pub fn cause(&self) -> String {
+        match (&self.source, &self.kind) {
+            (Some(scenario), _) => format!("scenario {scenario}"),
+            (None, DamageEventKind::Trigger) => "fatigue".into(),
+            (None, DamageEventKind::Dead) => "the world".into(),
+            (None, DamageEventKind::Override { .. }) => "manual".into(),
+        }
+    }
+}
+
 /// Per-joint state as the viewer shows it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -634,6 +647,17 @@ impl DamageState {
     pub fn n_triggered(&self) -> usize {
         self.triggered.iter().filter(|&&t| t).count()
     }
+    /// Who last changed each joint's torque ([`DamageEvent::cause`]), none if nothing did.
+    pub fn causes(&self) -> [Option<String>; N_ACTUATORS] {
+        std::array::from_fn(|i| {
+            self.events
+                .iter()
+                .rev()
+                .find(|e| e.actuator == i)
+                .map(DamageEvent::cause)
+        })
+    }
+
     /// Joints the world's dead-actuator draw killed (and no person revived).
     pub fn dead(&self) -> &[bool; N_ACTUATORS] {
         &self.dead

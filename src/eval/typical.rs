@@ -129,20 +129,26 @@ pub fn typical_episode(
         }
         runs.push((label, records));
     }
-    let outcomes: Vec<(String, Vec<EpisodeRecord>, usize, Option<f64>, f64)> = runs
+    let outcomes: Vec<ModelRuns> = runs
         .into_iter()
         .map(|(label, records)| {
             let successes = records.iter().filter(|r| r.success).count();
-            let steps = median(
+            let median_steps = median(
                 records
                     .iter()
                     .filter(|r| r.success)
                     .map(|r| r.steps as f64)
                     .collect(),
             );
-            let distance =
+            let median_distance =
                 median(records.iter().map(|r| r.final_distance).collect()).unwrap_or(0.0);
-            (label, records, successes, steps, distance)
+            ModelRuns {
+                label,
+                records,
+                successes,
+                median_steps,
+                median_distance,
+            }
         })
         .collect();
     // A seed's distance from typical: a model off its typical outcome costs a whole unit, then
@@ -151,15 +157,15 @@ pub fn typical_episode(
     let cost = |i: usize| -> f64 {
         outcomes
             .iter()
-            .map(|(_, records, successes, steps, distance)| {
-                let r = &records[i];
-                let typical_success = 2 * successes >= records.len();
+            .map(|m| {
+                let r = &m.records[i];
+                let typical_success = 2 * m.successes >= m.records.len();
                 if r.success != typical_success {
                     return 10.0;
                 }
-                match (r.success, steps) {
-                    (true, Some(m)) => (r.steps as f64 - m).abs() / m.max(1.0),
-                    _ => (r.final_distance - distance).abs() / distance.max(0.1),
+                match (r.success, m.median_steps) {
+                    (true, Some(steps)) => (r.steps as f64 - steps).abs() / steps.max(1.0),
+                    _ => (r.final_distance - m.median_distance).abs() / m.median_distance.max(0.1),
                 }
             })
             .sum()
@@ -173,18 +179,25 @@ pub fn typical_episode(
         condition,
         models: outcomes
             .into_iter()
-            .map(
-                |(label, records, successes, median_steps, median_distance)| ModelOutcomes {
-                    label,
-                    episodes: records.len(),
-                    successes,
-                    median_steps,
-                    median_distance,
-                    shown: records[best].clone(),
-                },
-            )
+            .map(|m| ModelOutcomes {
+                label: m.label,
+                episodes: m.records.len(),
+                successes: m.successes,
+                median_steps: m.median_steps,
+                median_distance: m.median_distance,
+                shown: m.records[best].clone(),
+            })
             .collect(),
     })
+}
+
+/// One model's episodes on the candidate seeds (in seed order) and their summary.
+struct ModelRuns {
+    label: String,
+    records: Vec<EpisodeRecord>,
+    successes: usize,
+    median_steps: Option<f64>,
+    median_distance: f64,
 }
 
 #[cfg(test)]

@@ -41,9 +41,9 @@ use crate::probe::ProbeFile;
 
 mod session;
 pub use session::{
-    Actor, FORK_ROOT, HISTORY_CAP, Lane, LaneEnding, LaneSnapshot, LaneSpec, PartialFile,
-    RecordError, RecordOptions, RecordSummary, RewindError, Session, model_roots, record,
-    side_by_side_offset,
+    Actor, FORK_ROOT, HISTORY_CAP, LOG_CAP, Lane, LaneEnding, LaneSnapshot, LaneSpec, LogEntry,
+    PartialFile, RecordError, RecordOptions, RecordSummary, RewindError, Session, model_roots,
+    record, side_by_side_offset,
 };
 
 pub const APP_ID: &str = "gaitscope";

@@ -67,7 +67,21 @@ pub struct Lane {
     fork_of: Option<String>,
     /// The session's global step of this lane's latest step.
     stepped_at: u64,
+    /// This episode's events in order, as the page lists them (see [`Self::event_log`]).
+    log: Vec<LogEntry>,
 }
+
+/// One line of a lane's episode log: a damage event (with who made it), a push, an ending.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LogEntry {
+    /// Steps taken in the episode when it happened (the page's step counter).
+    pub step: usize,
+    pub kind: &'static str,
+    pub text: String,
+}
+
+/// Entries a lane's log keeps (the oldest go first beyond it).
+pub const LOG_CAP: usize = 500;
 
 impl Lane {
     /// Its name in plot legends: the model, and whether this lane is a fork.
@@ -110,6 +124,7 @@ impl Lane {
             probe_before: None,
             fork_of: None,
             stepped_at: 0,
+            log: Vec::new(),
         })
     }
 
@@ -126,6 +141,7 @@ impl Lane {
         self.core.restore(&snapshot.state)?;
         self.probe_before = self.probe_now().copied();
         self.logger.rewind_to(snapshot.steps());
+        self.log.retain(|e| e.step <= snapshot.steps());
         Ok(())
     }
 
@@ -172,6 +188,60 @@ impl Lane {
 
     pub fn fork_of(&self) -> Option<&str> {
         self.fork_of.as_deref()
+    }
+
+    /// This episode's events, oldest first (at most [`LOG_CAP`]): damage with its cause,
+    /// pushes, the ending.
+    pub fn event_log(&self) -> &[LogEntry] {
+        &self.log
+    }
+
+    /// Notes what the latest step brought into the log.
+    fn note_step(&mut self) {
+        let Some(record) = self.core.last() else {
+            return;
+        };
+        let steps = record.step() + 1;
+        let mut entries: Vec<LogEntry> = record
+            .events
+            .iter()
+            .map(|e| LogEntry {
+                step: steps,
+                kind: match e.kind {
+                    crate::damage::DamageEventKind::Trigger => "triggered",
+                    crate::damage::DamageEventKind::Dead => "died",
+                    crate::damage::DamageEventKind::Override { .. } => "manual",
+                },
+                text: format!("{} ({})", e.describe(), e.cause()),
+            })
+            .collect();
+        entries.extend(
+            record
+                .pushes
+                .iter()
+                .filter(|p| p.starts_at(record.step()))
+                .map(|p| LogEntry {
+                    step: steps,
+                    kind: "push",
+                    text: p.describe(),
+                }),
+        );
+        if let Some(ending) = record.outcome.ending {
+            entries.push(LogEntry {
+                step: steps,
+                kind: "ending",
+                text: format!(
+                    "ended: {ending} ({}), {:.2} m from the goal",
+                    ending.meaning(),
+                    record.outcome.distance
+                ),
+            });
+        }
+        self.log.extend(entries);
+        if self.log.len() > LOG_CAP {
+            let extra = self.log.len() - LOG_CAP;
+            self.log.drain(..extra);
+        }
     }
 }
 
@@ -392,6 +462,7 @@ impl Session {
             return Ok(());
         };
         let state = main.snapshot();
+        let main_log = main.log.clone();
         let described = format!(
             "fork of {} at step {}: {}",
             main.root,
@@ -416,6 +487,7 @@ impl Session {
             lane.core.env_mut().apply_edit(edit)?;
         }
         lane.probe_before = lane.probe_now().copied();
+        lane.log = main_log;
         lane.fork_of = Some(described.clone());
         let episode = self.episodes_started.saturating_sub(1);
         lane.logger.set_time(self.global_step, episode);
@@ -534,6 +606,7 @@ impl Session {
                 .env_mut()
                 .set_fatigue_triggers(self.fatigue_triggers);
             lane.core.reset(seed);
+            lane.log.clear();
             if let Some(start) = &self.start {
                 lane.core.start_from(start)?;
             }
@@ -579,6 +652,7 @@ impl Session {
             };
             // The stepping core steps; the sinks only read its record.
             lane.core.advance(&lane.actor, self.mode)?;
+            lane.note_step();
             let Some(record) = lane.core.last() else {
                 continue;
             };
