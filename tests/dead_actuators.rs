@@ -7,9 +7,11 @@ use gaitscope::config::GaitConfig;
 use gaitscope::damage::{DamageEventKind, JointState, N_ACTUATORS};
 use gaitscope::env::{ACT_DIM, AntEnv, OBS_DIM};
 use gaitscope::lane::{Actor, Lane};
-use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, Privileged, SacConfig, SacModel};
+use gaitscope::policy::{ActionMode, EncoderKind, NetConfig, Privileged};
 use gaitscope::{Condition, ConditionChoice, JointOverride};
 use rand::{Rng, SeedableRng};
+
+mod common;
 
 fn dead_world(condition: Condition) -> GaitConfig {
     let mut c = GaitConfig::world("dead-joints").expect("shipped world");
@@ -205,22 +207,11 @@ fn a_fork_heals_a_dead_joint_by_hand() {
 }
 
 fn save_model(dir: &std::path::Path, net: NetConfig, world: &GaitConfig) {
-    use gaitscope::policy::checkpoint::TrainingRecord;
     let net = NetConfig {
         hidden: vec![16, 16],
         ..net
     };
-    let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
-    let record = TrainingRecord {
-        env: world.clone(),
-        sac: SacConfig::default(),
-        seed: 3,
-        steps_done: 0,
-        episodes_done: 0,
-        wall_time_s: 0.0,
-        imported_from: None,
-    };
-    model.save(dir, &record).unwrap();
+    common::save_untrained(dir, net, world);
 }
 
 #[test]

@@ -8,7 +8,7 @@ use std::path::Path;
 /// Top-level modules, lowest layer first; a module may name only modules of lower layers.
 const LAYERS: &[&[&str]] = &[
     &["damage", "plots", "progress"],
-    &["config"],
+    &["config", "palette"],
     &["env"],
     &["window"],
     &["policy"],

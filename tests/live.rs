@@ -503,7 +503,7 @@ mod panel {
         let mut ui = harness(&sim);
         ui.run();
         assert_eq!(ui.get_all_by_label("fail now").count(), 8, "one per joint");
-        assert_eq!(ui.get_all_by_label("healthy").count(), 8);
+        assert_eq!(ui.get_all_by_label("full torque").count(), 8);
         ui.get_all_by_label("fail now")
             .nth(3)
             .expect("a fourth joint")
@@ -514,7 +514,8 @@ mod panel {
         assert_eq!(s.global_step, 0, "paused: not applied to a step yet");
         // The panel shows it, and Step runs exactly one env step with the joint at 0.1.
         ui.run();
-        assert_eq!(ui.get_all_by_label("triggered").count(), 1);
+        // In the torque's words, with who took it: a hand, not fatigue.
+        assert_eq!(ui.get_all_by_label("scale 0.10 (manual)").count(), 1);
         ui.get_by_label("Step").click();
         ui.run();
         let s = sim.wait_for(WAIT, |s| s.global_step == 1);

@@ -42,6 +42,8 @@ pub struct TypicalPick {
     pub seed: u64,
     pub candidates: Range<u64>,
     pub condition: Option<Condition>,
+    /// The scenario the episodes ran under, if one was set.
+    pub scenario: Option<String>,
     pub models: Vec<ModelOutcomes>,
 }
 
@@ -49,9 +51,11 @@ impl TypicalPick {
     /// One paragraph: how the episode was chosen, each model's record over the candidates and
     /// here, and where the real statistics are.
     pub fn caption(&self) -> String {
-        let condition = self
-            .condition
-            .map_or("random damage".to_string(), |c| format!("{c} damage"));
+        let condition = match (&self.scenario, self.condition) {
+            (Some(name), _) => format!("scenario {name}"),
+            (None, Some(c)) => format!("{c} damage"),
+            (None, None) => "random damage".to_string(),
+        };
         let mut text = format!(
             "Seed {} is the most typical of seeds {}–{} under {condition}: every model does what it \
              usually does there, as close to its median as any seed.",
@@ -71,9 +75,10 @@ impl TypicalPick {
                     m.shown.final_distance
                 ),
             };
-            let median = match m.median_steps {
-                Some(s) => format!("median {s:.0} steps to the goal"),
-                None => format!("median final distance {:.1} m", m.median_distance),
+            // The median the pick used: steps for a model that usually arrives, else distance.
+            let median = match (m.typically_succeeds(), m.median_steps) {
+                (true, Some(s)) => format!("median {s:.0} steps to the goal"),
+                _ => format!("median final distance {:.1} m", m.median_distance),
             };
             text += &format!(
                 " {}: {}/{} reached the goal ({median}); {here}.",
@@ -177,6 +182,7 @@ pub fn typical_episode(
         seed: seeds[best],
         candidates,
         condition,
+        scenario: config.damage.scenario.as_ref().map(|s| s.name.clone()),
         models: outcomes
             .into_iter()
             .map(|m| ModelOutcomes {

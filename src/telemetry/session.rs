@@ -338,6 +338,9 @@ impl Session {
 
     /// What the recording shows and why (under the key), e.g. how its episode was chosen.
     pub fn set_caption(&mut self, caption: Option<String>) -> Result<(), RecordError> {
+        if caption == self.caption {
+            return Ok(());
+        }
         self.caption = caption;
         self.style_lanes()
     }

@@ -33,7 +33,8 @@ pub fn read_rrd(path: &std::path::Path) -> Vec<Chunk> {
 pub fn rows(chunks: &[Chunk], entity: &str) -> usize {
     chunks
         .iter()
-        .filter(|c| c.entity_path().to_string() == entity)
+        // Per-step rows only: a static row (series names, colours) is no step.
+        .filter(|c| c.entity_path().to_string() == entity && !c.is_static())
         .map(Chunk::num_rows)
         .sum()
 }
@@ -299,8 +300,7 @@ pub fn blueprint_view_names(msgs: &[rerun::log::LogMsg]) -> Vec<String> {
 /// Saves a small untrained LSTM checkpoint into `dir` as if trained in a world whose joints
 /// trigger at fatigue `threshold` and whose window is `context_len` steps.
 pub fn save_checkpoint_in_world(dir: &std::path::Path, threshold: f64, context_len: usize) {
-    use gaitscope::policy::checkpoint::TrainingRecord;
-    use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
+    use gaitscope::policy::{EncoderKind, NetConfig};
     let mut trained = gaitscope::GaitConfig::default();
     trained.damage.threshold = threshold;
     trained.context.len = context_len;
@@ -310,9 +310,20 @@ pub fn save_checkpoint_in_world(dir: &std::path::Path, threshold: f64, context_l
         context_len,
         ..NetConfig::ant(EncoderKind::Lstm)
     };
+    save_untrained(dir, net, &trained);
+}
+
+/// Saves an untrained model of shape `net` into `dir`, recorded as trained in `world`.
+pub fn save_untrained(
+    dir: &std::path::Path,
+    net: gaitscope::policy::NetConfig,
+    world: &gaitscope::GaitConfig,
+) {
+    use gaitscope::policy::checkpoint::TrainingRecord;
+    use gaitscope::policy::{SacConfig, SacModel};
     let model = SacModel::new(net, 1.0, 3, &candle_core::Device::Cpu).unwrap();
     let record = TrainingRecord {
-        env: trained,
+        env: world.clone(),
         sac: SacConfig::default(),
         seed: 3,
         steps_done: 0,
