@@ -125,13 +125,10 @@ pub fn typical_episode(
         let label = actor.label();
         // The case only labels the records; each lane draws its condition from the config.
         let case = Case::Condition(condition.unwrap_or(Condition::Healthy));
-        // One lane per call: a batched policy call can round a row differently from a lone
-        // one (the GEMM's blocking depends on the batch), and the episode picked must be the
-        // one `record` and `live` then show, lane by lane.
-        let mut records = Vec::with_capacity(seeds.len());
-        for (i, &seed) in seeds.iter().enumerate() {
-            records.extend(run_lockstep(actor, &label, config, case, &[seed], i)?);
-        }
+        // In lockstep: a row decides the same bits in any batch as alone
+        // (tests/batch_invariance.rs), so these are the episodes `record` and `live` show.
+        let mut records = run_lockstep(actor, &label, config, case, &seeds, 0)?;
+        records.sort_by_key(|r| r.seed);
         runs.push((label, records));
     }
     let outcomes: Vec<ModelRuns> = runs

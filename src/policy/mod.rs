@@ -440,22 +440,66 @@ impl Actor {
                 net.entry_dim()
             );
         }
+        // Rows go through in blocks of 2 to DECIDE_BLOCK rows: candle's CPU matmul rounds a
+        // product differently for a single row, and again past 64 rows (the window-MLP's
+        // 592-wide input: measured on the bundled encoders, tests/batch_invariance.rs), and a
+        // lane must decide the same bits alone (live, record, rollout) as in eval's lockstep
+        // of any size. Larger batches are cut into blocks; a lone row goes as itself twice.
+        if b > DECIDE_BLOCK {
+            if let Some(e) = noise
+                && e.len() != b * net.act_dim
+            {
+                candle_core::bail!("sampled actions need {b} × {} noise values", net.act_dim);
+            }
+            let mut out = Vec::with_capacity(b);
+            for start in (0..b).step_by(DECIDE_BLOCK) {
+                let rows = DECIDE_BLOCK.min(b - start);
+                let cut = |v: &[f32], per: usize| v[start * per..(start + rows) * per].to_vec();
+                let w = window.map(|w| cut(w, net.context_len * net.entry_dim()));
+                let e = noise.map(|e| cut(e, net.act_dim));
+                out.extend(self.decide(
+                    net,
+                    device,
+                    &cut(obs, net.obs_dim),
+                    w.as_deref(),
+                    mode,
+                    e.as_deref(),
+                )?);
+            }
+            return Ok(out);
+        }
+        let twice = |v: &[f32]| [v, v].concat();
+        let (obs_in, window_in, noise_in);
+        let (obs, window, noise, rows) = if b == 1 {
+            obs_in = twice(obs);
+            window_in = window.map(twice);
+            noise_in = noise.map(twice);
+            (&obs_in[..], window_in.as_deref(), noise_in.as_deref(), 2)
+        } else {
+            (obs, window, noise, b)
+        };
         let input = PolicyInput::from_slices(net, obs, window, device)?;
         let out = self.forward(&input, Grad::Frozen)?;
         let action = match (mode, noise) {
             (ActionMode::Deterministic, _) => out.mean.tanh()?,
-            (ActionMode::Sampled, Some(noise)) if noise.len() == b * net.act_dim => {
-                squashed_sample(&out, &Tensor::from_slice(noise, (b, net.act_dim), device)?)?.0
+            (ActionMode::Sampled, Some(noise)) if noise.len() == rows * net.act_dim => {
+                squashed_sample(
+                    &out,
+                    &Tensor::from_slice(noise, (rows, net.act_dim), device)?,
+                )?
+                .0
             }
             (ActionMode::Sampled, _) => {
                 candle_core::bail!("sampled actions need {b} × {} noise values", net.act_dim)
             }
         };
-        let actions = action.to_vec2::<f32>()?;
-        let zs = match &out.z {
+        let mut actions = action.to_vec2::<f32>()?;
+        let mut zs: Vec<Option<Vec<f32>>> = match &out.z {
             Some(z) => z.to_vec2::<f32>()?.into_iter().map(Some).collect(),
-            None => vec![None; b],
+            None => vec![None; rows],
         };
+        actions.truncate(b);
+        zs.truncate(b);
         Ok(actions
             .into_iter()
             .zip(zs)
@@ -466,6 +510,10 @@ impl Actor {
             .collect())
     }
 }
+
+/// The most rows one forward pass decides (see [`Actor::decide`]): every row's bits are the
+/// same in any block of 2 to this many rows.
+pub const DECIDE_BLOCK: usize = 64;
 
 /// Squashed-Gaussian sample: a = tanh(μ + σ·ε) and its log-probability (B, 1), with the tanh
 /// correction. `noise` is ε ~ N(0, 1) of the same shape as μ, drawn by the caller (seeded).
