@@ -862,3 +862,43 @@ fn check_0_36_leg_colors(chunks: &[Chunk], threshold: f64) -> usize {
     }
     red
 }
+
+/// A scenario's damage is scripted damage, not a hand's: a leg it kills turns slate (and one it
+/// weakens follows the ramp), never the violet of a pin by hand, and its events are warnings.
+#[test]
+fn a_scenario_kills_a_leg_in_slate_with_warnings() {
+    let scenario = gaitscope::damage::scenario::Scenario::from_json(
+        r#"{"name": "dead-leg", "fatigue": false,
+            "edits": [{"step": 10, "joint": "front_left_leg", "scale": 0.0},
+                      {"step": 10, "joint": "hip_2", "scale": 0.5}]}"#,
+        "test",
+    )
+    .unwrap();
+    let mut opts = options(Sink::Memory);
+    opts.config.damage.scenario = Some(scenario);
+    let run = record(opts, &AtomicBool::new(false)).unwrap();
+    let chunks = chunks(run.storage.unwrap().take());
+    // No joint counted as pinned by hand: every colour is its scale's.
+    assert!(common::check_leg_colors(&chunks, "/ant", &[]) > 0);
+    let colors = common::leg_colors(&chunks, "/ant");
+    let last = colors.values().last().unwrap();
+    assert_eq!(
+        last["left_leg_geom"],
+        common::expected_leg_color(0.0, false)
+    );
+    assert_eq!(
+        last["left_ankle_geom"],
+        common::expected_leg_color(0.0, false)
+    );
+    assert_eq!(
+        last["right_leg_geom"],
+        common::expected_leg_color(0.5, false)
+    );
+    let events = common::text_log_levels(&chunks, "/ant/events");
+    let scripted: Vec<_> = events
+        .iter()
+        .filter(|(_, _, t)| t.contains("scenario dead-leg"))
+        .collect();
+    assert_eq!(scripted.len(), 3, "{events:?}");
+    assert!(scripted.iter().all(|(_, l, _)| l == "WARN"), "{events:?}");
+}

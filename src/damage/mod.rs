@@ -665,14 +665,24 @@ impl DamageState {
     pub fn joint_state(&self, actuator: usize) -> JointState {
         if self.dead[actuator] {
             JointState::Dead
-        } else if self.manual[actuator] {
+        } else if self.manual[actuator] && !self.pinned_by_scenario(actuator) {
             JointState::Manual
-        } else if self.triggered[actuator] {
+        } else if self.triggered[actuator] || self.manual[actuator] {
             JointState::Triggered
         } else {
             JointState::Healthy
         }
     }
+    /// Whether the joint's pin came from a scenario (scripted damage, shown by its torque like
+    /// a trigger) rather than a hand: its latest change says so.
+    fn pinned_by_scenario(&self, actuator: usize) -> bool {
+        self.events
+            .iter()
+            .rev()
+            .find(|e| e.actuator == actuator && matches!(e.kind, DamageEventKind::Override { .. }))
+            .is_some_and(|e| e.source.is_some())
+    }
+
     /// The first step run under damage, if any: the step after the first fatigue trigger (a
     /// trigger during step `t` scales `t + 1` on, under every condition, healthy's 1.0
     /// included), or the step from which a scenario or a person first failed or weakened a

@@ -1155,8 +1155,13 @@ impl AntLogger {
         for e in &record.events {
             // A warning only where torque was lost: under the healthy condition a trigger
             // keeps scale 1 and is news, not damage.
+            // A scenario's change is scripted damage, a warning like a trigger when it takes
+            // torque; a hand's is INFO.
             let level = match &e.kind {
                 DamageEventKind::Trigger | DamageEventKind::Dead if e.scale < 1.0 => {
+                    rerun::TextLogLevel::WARN
+                }
+                DamageEventKind::Override { .. } if e.source.is_some() && e.scale < 1.0 => {
                     rerun::TextLogLevel::WARN
                 }
                 _ => rerun::TextLogLevel::INFO,
