@@ -79,7 +79,7 @@ fn a_zero_push_fork_is_a_fork_with_no_edit() {
 #[test]
 fn a_heal_all_fork_applies_what_it_commands_and_leaves_the_main_lane_alone() {
     let plain = rollout(&[]).unwrap();
-    let k = 25;
+    let k = 35;
     let rows = rollout(&["--fork-at", &k.to_string(), "--fork", "heal:all"]).unwrap();
     let (main, fork) = (lane(&rows, "main"), lane(&rows, "fork"));
     // The main lane is the run without a fork.

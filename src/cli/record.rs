@@ -21,7 +21,7 @@ pub(crate) struct RecordArgs {
     compare: Option<PathBuf>,
     #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
     policy: BuiltinPolicy,
-    /// Damage condition (default: random per episode).
+    /// Damage condition (default severe, as in `live` and `video`).
     #[arg(long, value_name = "healthy|mild|severe")]
     condition: Option<Condition>,
     #[arg(long, default_value_t = 1)]
@@ -77,9 +77,7 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
     }
     let mut config = args.env.load()?;
     config.env.max_episode_steps = args.max_steps;
-    if let Some(c) = args.condition {
-        config.damage.condition = ConditionChoice::Fixed(c);
-    }
+    config.damage.condition = ConditionChoice::Fixed(args.condition.unwrap_or(Condition::Severe));
     let mut actors = Vec::new();
     for dir in args.checkpoint.iter().chain(&args.compare) {
         actors.push(Actor::load(dir)?);

@@ -14,7 +14,8 @@ use super::{EnvArgs, fork_option};
 pub(crate) struct RolloutArgs {
     #[command(flatten)]
     env: EnvArgs,
-    /// Damage condition; without it each episode draws one at random.
+    /// Damage condition (default severe, as in `record`, `live` and `video`; with --init-state,
+    /// a saved state's own).
     #[arg(long, value_name = "healthy|mild|severe")]
     condition: Option<Condition>,
     #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random, conflicts_with = "init_state")]
@@ -69,6 +70,8 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
     config.env.max_episode_steps = args.max_steps;
     if let Some(condition) = args.condition {
         config.damage.condition = ConditionChoice::Fixed(condition);
+    } else if args.init_state.is_none() {
+        config.damage.condition = ConditionChoice::Fixed(Condition::Severe);
     }
     let mut out = BufWriter::new(std::io::stdout().lock());
 
