@@ -2,7 +2,7 @@
 # The evidence runs, two lanes, one per core, at nice 19, so they only take what foreground work
 # leaves. Issue 31's and 33's runs in the paper's world (checkpoints/seeds/) are done. Now issue
 # 47's calibration in the dead-joints world (checkpoints/dead-joints/): the oracle (true damage
-# as input) and the baseline, seed 0 each, 500k steps; the LSTM runs follow once oracle −
+# as input) and the baseline, seeds 0 (done: +8/+15/+15 points) and 1, 500k steps; the LSTM runs follow once oracle −
 # baseline ≥ 15 points on held-out seeds. Each run resumes from its last checkpoint (every
 # 10,000 steps), so `start` is the same command on the first day and on a fresh machine after a
 # clone. The replay buffers live outside the work tree (~/.cache/gaitscope/replay/<world>/<run>),
@@ -31,8 +31,8 @@ steps=500000
 # Each lane's runs, as <world folder>/<model>-s<seed> under checkpoints/.
 lane_runs() {
   case $1 in
-    0) echo "dead-joints/oracle-s0" ;;
-    1) echo "dead-joints/baseline-s0" ;;
+    0) echo "dead-joints/oracle-s0 dead-joints/oracle-s1" ;;
+    1) echo "dead-joints/baseline-s0 dead-joints/baseline-s1" ;;
   esac
 }
 
