@@ -30,10 +30,15 @@ pub struct ModelOutcomes {
 }
 
 impl ModelOutcomes {
-    /// Whether the model typically reaches the goal (on at least half of the seeds).
+    /// Whether the model typically reaches the goal ([`typically_succeeds`]).
     pub fn typically_succeeds(&self) -> bool {
-        2 * self.successes >= self.episodes
+        typically_succeeds(self.successes, self.episodes)
     }
+}
+
+/// A model typically reaches the goal when it does so on at least half of the seeds.
+fn typically_succeeds(successes: usize, episodes: usize) -> bool {
+    2 * successes >= episodes
 }
 
 /// The chosen seed and why.
@@ -85,8 +90,11 @@ impl TypicalPick {
                 m.label, m.successes, m.episodes
             );
         }
-        text + " Eight episodes are an illustration, not a result: success rates over hundreds \
-                of paired episodes and several training seeds are in docs/results.md."
+        text + &format!(
+            " {} episodes are an illustration, not a result: success rates over hundreds of \
+             paired episodes and several training seeds are in docs/results.md.",
+            self.candidates.end - self.candidates.start
+        )
     }
 }
 
@@ -161,7 +169,7 @@ pub fn typical_episode(
             .iter()
             .map(|m| {
                 let r = &m.records[i];
-                let typical_success = 2 * m.successes >= m.records.len();
+                let typical_success = typically_succeeds(m.successes, m.records.len());
                 if r.success != typical_success {
                     return 10.0;
                 }
