@@ -30,7 +30,7 @@ pub struct ModelOutcomes {
 }
 
 impl ModelOutcomes {
-    /// Whether the model typically reaches the goal ([`typically_succeeds`]).
+    /// Whether the model typically reaches the goal: on at least half of the seeds.
     pub fn typically_succeeds(&self) -> bool {
         typically_succeeds(self.successes, self.episodes)
     }
