@@ -467,8 +467,8 @@ pub struct VideoOptions {
 
 /// Renders one episode to `opts.out`: every check (size, name, fork in the model's world)
 /// before the file is created; two lanes (a comparison or a fork) side by side, each half the
-/// width and captioned with its model's name. Returns the frame count.
-pub fn render(opts: VideoOptions) -> Result<usize, VideoError> {
+/// width and captioned with its model's name. Returns the frame count and each lane's ending.
+pub fn render(opts: VideoOptions) -> Result<VideoSummary, VideoError> {
     let VideoOptions {
         out,
         spec,
@@ -528,21 +528,30 @@ pub fn render(opts: VideoOptions) -> Result<usize, VideoError> {
         }
     }
     let mut encoder = Encoder::start(&out, spec)?;
-    let frames = render_episode(lanes, fork.as_ref(), spec, lane_spec, &mut encoder)?;
+    let summary = render_episode(lanes, fork.as_ref(), spec, lane_spec, &mut encoder, seed)?;
     encoder.finish()?;
-    Ok(frames)
+    Ok(summary)
+}
+
+/// What a rendered video shows: its frames and how each lane's episode ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VideoSummary {
+    pub frames: usize,
+    pub endings: Vec<crate::lane::LaneEnding>,
 }
 
 /// Runs the lanes in lockstep to the end of every episode, one frame per step: lanes side by
 /// side, each `lane_width` wide (a finished lane holds its last frame). `fork` adds a lane from
-/// the first one before step K. Returns the frame count.
+/// the first one before step K. Returns the frame count and each lane's ending (episode 1 of
+/// `seed`).
 pub fn render_episode(
     mut lanes: Vec<VideoLane>,
     fork: Option<&crate::rollout::Fork>,
     spec: FrameSpec,
     lane_spec: FrameSpec,
     encoder: &mut Encoder,
-) -> Result<usize, VideoError> {
+    seed: u64,
+) -> Result<VideoSummary, VideoError> {
     let mut frames = 0;
     let mut forked = false;
     // Frames up to the longest step limit (an episode can end sooner).
@@ -579,7 +588,19 @@ pub fn render_episode(
             lanes[0].steps()
         )));
     }
-    Ok(frames)
+    let endings = lanes
+        .iter()
+        .map(|l| {
+            // A lane alone has no caption: its model names it.
+            let label = match (&l.label, &l.actor) {
+                (c, _) if !c.is_empty() => c.clone(),
+                (_, a @ crate::lane::Actor::Checkpoint { .. }) => a.label(),
+                (_, a) => format!("{} policy", a.label()),
+            };
+            l.lane.ending(label, 1, seed)
+        })
+        .collect();
+    Ok(VideoSummary { frames, endings })
 }
 
 /// The lanes' frames side by side in one `spec`-sized frame (black where a lane has none yet).

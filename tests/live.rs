@@ -120,6 +120,11 @@ fn scripted_commands_reach_the_sim_at_the_next_step_and_the_stream() {
     let s = step_once(&sim);
     assert_eq!(s.lanes[0].states[5], JointState::Manual);
     assert_eq!(s.lanes[0].applied[5], 0.3 * s.lanes[0].commanded[5]);
+    // A state saved now calls the session what it is: manual (severe's thresholds underneath).
+    let saved = s.saved_state.as_ref().expect("a model is loaded");
+    assert_eq!(saved.condition.as_deref(), Some("manual"));
+    assert_eq!(saved.env.damage.condition.name(), "severe");
+    assert!(!saved.env.damage.fatigue_triggers);
     // Before env step 11: joint 2 healed.
     sim.send(Command::Override {
         actuator: 2,
@@ -591,6 +596,7 @@ mod panel {
         step_once(&sim);
         let s = step_once(&sim);
         let saved = s.saved_state.expect("a model is loaded");
+        assert_eq!(saved.condition.as_deref(), Some("severe"));
         assert_eq!(saved.env.step, 2);
         assert_eq!(saved.env.pushes.len(), 1);
         assert_eq!(saved.env.pushes[0].push.force, [0.0, 40.0, 0.0]);

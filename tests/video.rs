@@ -56,8 +56,8 @@ fn frames_show_the_ant_and_its_damage() {
     );
 }
 
-/// Runs `gaitscope video ARGS --out OUT`; panics with its stderr if it fails.
-fn video(args: &[&str], out: &std::path::Path) {
+/// Runs `gaitscope video ARGS --out OUT`; its stderr, or a panic with it if it fails.
+fn video(args: &[&str], out: &std::path::Path) -> String {
     let run = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
         .arg("video")
         .args(args)
@@ -65,11 +65,9 @@ fn video(args: &[&str], out: &std::path::Path) {
         .arg(out)
         .output()
         .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
+    assert!(run.status.success(), "{stderr}");
+    stderr
 }
 
 /// ffprobe's `entries` of the first video stream, counted frames included, as CSV.
@@ -93,13 +91,19 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ant.mp4");
     let size = ["--width", "320", "--height", "240"];
-    video(
+    let said = video(
         &[
             &["--policy", "zero", "--max-steps", "30", "--fps", "20"][..],
             &size,
         ]
         .concat(),
         &out,
+    );
+    // It says how the episode ended: the zero policy stands still until the step limit.
+    assert!(
+        said.contains("zero policy: timeout after 30 steps, ")
+            && said.contains("m from the goal (episode 1, seed 0)"),
+        "{said}"
     );
     assert_eq!(
         probe(&out, "width,height,nb_read_frames,r_frame_rate"),
@@ -118,7 +122,11 @@ fn a_30_step_episode_is_a_30_frame_mp4_at_the_asked_size_and_rate() {
         "--fork",
         "fail:all=0.1",
     ];
-    video(&[&fork[..], &size].concat(), &forked);
+    let said = video(&[&fork[..], &size].concat(), &forked);
+    assert!(
+        said.contains("fork at step 10: fail:all=0.1: timeout after 20 steps"),
+        "{said}"
+    );
     assert_eq!(probe(&forked, "width,height,nb_read_frames"), "320,240,20");
     // From a state saved before step 20 of a 30-step episode: the 10 steps left, 10 frames.
     let state = dir.path().join("state.json");

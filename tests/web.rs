@@ -410,6 +410,25 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             tokio::time::sleep(Duration::from_millis(20)).await;
         };
         eprintln!("click → applied, seen by the page: {latency}");
+        // The server's timing of it (its event may come one period after the applied state).
+        let last = loop {
+            let text = client
+                .find(Locator::Id("last-command"))
+                .await
+                .unwrap()
+                .text()
+                .await
+                .unwrap();
+            if text.contains("taken by") || Instant::now() > deadline {
+                break text;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        assert!(
+            last.starts_with("edit fail:ankle_3: taken by the simulation")
+                && last.ends_with("ms after the server sent it"),
+            "{last}"
+        );
         step_by(&client, 1).await;
         let s = wait_state(&client, "step 6", |s| lane_step(s) == 6).await;
         let ankle = joint(&s, "ankle_3");
@@ -878,6 +897,38 @@ fn a_stalled_request_does_not_freeze_the_page() {
         stepped.starts_with("HTTP/1.1 200") && stepped.contains("receipt"),
         "{stepped}"
     );
+    // A command from outside the page is timed by the server, and the page shows it.
+    let get = |path: &str| {
+        raw_http(
+            port,
+            &format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"),
+        )
+    };
+    let body = |answer: &str| -> Value {
+        serde_json::from_str(answer.split("\r\n\r\n").nth(1).unwrap()).unwrap()
+    };
+    let deadline = Instant::now() + WAIT;
+    let timed = loop {
+        let s = body(&get("/state"));
+        if s["last_command"]["applied"] == true && s["lanes"][0]["step"] == 3 {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "the API's step never timed: {s}");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let last = &timed["last_command"];
+    assert_eq!(last["command"], "step 3", "{last}");
+    let ms = last["applied_in_ms"].as_f64().unwrap();
+    assert!((0.0..WAIT.as_millis() as f64).contains(&ms), "{last}");
+    // The page comes with that state inside it: never an empty "connecting…" page.
+    let page = get("/");
+    let start = page.find("const first = ").unwrap() + "const first = ".len();
+    let line = &page[start..start + page[start..].find('\n').unwrap()];
+    let first: Value = serde_json::from_str(line.trim_end_matches(';')).unwrap();
+    assert_eq!(first["paused"], true);
+    assert_eq!(first["lanes"][0]["step"], timed["lanes"][0]["step"]);
+    assert_eq!(first["last_command"]["command"], "step 3");
+    assert!(!page.contains("FIRST_SNAPSHOT"));
     let quit = post(port, r#"{"command":"quit"}"#);
     assert!(quit.starts_with("HTTP/1.1 200"), "{quit}");
     let deadline = Instant::now() + WAIT;

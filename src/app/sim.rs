@@ -240,6 +240,8 @@ pub struct Snapshot {
     pub attribution: bool,
     /// Commands the sim thread has taken so far, in the order they were sent.
     pub commands_handled: u64,
+    /// When it took the latest of them (a front-end times its command from its own send).
+    pub last_command_at: Option<Instant>,
     /// The simulation thread has stopped.
     pub stopped: bool,
 }
@@ -312,6 +314,7 @@ impl SimHandle {
             dt,
             steps_pending: 0,
             commands_handled: 0,
+            last_command_at: None,
             over_since: None,
             message: None,
             breakpoints: setup.breakpoints.clone(),
@@ -409,6 +412,7 @@ struct Sim {
     steps_pending: usize,
     /// Commands taken off the channel so far (a front-end's receipt: its n-th command applied).
     commands_handled: u64,
+    last_command_at: Option<Instant>,
     /// When every model's episode ended (the next starts after [`HOLD_FINISHED`]).
     over_since: Option<Instant>,
     message: Option<String>,
@@ -623,6 +627,7 @@ impl Sim {
     fn handle(&mut self, command: Command) {
         self.message = None;
         self.commands_handled += 1;
+        self.last_command_at = Some(Instant::now());
         let result = match command {
             Command::Override { actuator, change } => self
                 .session
@@ -897,6 +902,7 @@ impl Sim {
                 .map(|l| Arc::new(l.save_state(self.session.seed()))),
             attribution: self.session.attribution(),
             commands_handled: self.commands_handled,
+            last_command_at: self.last_command_at,
             stopped: false,
         }
     }

@@ -304,13 +304,16 @@ impl WebServer {
         let path = request.url().split('?').next().unwrap_or("/").to_string();
         match (request.method(), path.as_str()) {
             (tiny_http::Method::Get, "/") => {
-                let response = tiny_http::Response::from_string(PAGE)
+                // The page arrives with the state inside it, so it never shows an empty
+                // "connecting…" before the first event (a screenshot, a slow stream).
+                let first = self.snapshot_json(&sim.snapshot(), posts);
+                let response = tiny_http::Response::from_string(page_with(&first))
                     .with_header(header("Content-Type", "text/html; charset=utf-8"));
                 let _ = request.respond(response);
                 Routed::Other
             }
             (tiny_http::Method::Get, "/state") => {
-                let body = self.snapshot_json(&sim.snapshot());
+                let body = self.snapshot_json(&sim.snapshot(), posts);
                 respond(request, 200, &body);
                 Routed::Other
             }
@@ -346,7 +349,7 @@ impl WebServer {
                     respond(request, 503, &json!({ "error": "too many open pages" }));
                     return Routed::Refused;
                 }
-                self.stream_events(request, sim, clients.clone());
+                self.stream_events(request, sim, clients.clone(), posts.clone());
                 Routed::Other
             }
             (tiny_http::Method::Post, "/command") => self.post_command(request, sim, posts),
@@ -425,19 +428,28 @@ impl WebServer {
                 let parsed = body.and_then(|body| {
                     let request: WebRequest = serde_json::from_str(&body)
                         .map_err(|e| format!("malformed request: {e}"))?;
-                    commands(request, &snapshot, &checkpoints)
+                    let what = request.describe();
+                    Ok((what, commands(request, &snapshot, &checkpoints)?))
                 });
                 match parsed {
-                    Ok(commands) => {
+                    Ok((what, commands)) => {
                         // The page is the sim's only sender: its command has been applied once
                         // the snapshot's `commands_handled` reaches this receipt.
                         let mut sent = mine.sent.lock().unwrap_or_else(|e| e.into_inner());
                         let n = commands.len() as u64;
+                        let sent_at = Instant::now();
                         if !commands.into_iter().all(|c| tx.send(c).is_ok()) {
                             respond(request, 503, &json!({ "error": "the simulation stopped" }));
                             return;
                         }
                         *sent += n;
+                        if n > 0 {
+                            *mine.latest.lock().unwrap_or_else(|e| e.into_inner()) = Some(Posted {
+                                receipt: *sent,
+                                what,
+                                sent_at,
+                            });
+                        }
                         respond(request, 200, &json!({ "ok": true, "receipt": *sent }));
                     }
                     Err(error) => respond(request, 400, &json!({ "error": error })),
@@ -457,6 +469,7 @@ impl WebServer {
         request: tiny_http::Request,
         sim: &SimHandle,
         clients: Arc<AtomicUsize>,
+        posts: Posts,
     ) {
         let shared = sim.shared_snapshot();
         let statics = self.statics();
@@ -468,7 +481,7 @@ impl WebServer {
                 // Our own framing on the raw socket: tiny_http's chunked writer would hold
                 // events back until 8 KiB had gathered.
                 let mut out = request.into_writer();
-                let _ = event_loop(&mut out, &shared, &statics);
+                let _ = event_loop(&mut out, &shared, &statics, &posts);
                 open.fetch_sub(1, Ordering::SeqCst);
             });
         if spawned.is_err() {
@@ -486,8 +499,9 @@ impl WebServer {
         })
     }
 
-    fn snapshot_json(&self, snapshot: &Snapshot) -> Value {
+    fn snapshot_json(&self, snapshot: &Snapshot, posts: &Posts) -> Value {
         let mut value = snapshot_json(snapshot);
+        value["last_command"] = last_command_json(posts, snapshot);
         value["session"] = self.statics();
         value
     }
@@ -503,28 +517,33 @@ fn event_loop(
     out: &mut dyn Write,
     shared: &Arc<Mutex<Snapshot>>,
     statics: &Value,
+    posts: &Posts,
 ) -> std::io::Result<()> {
     out.write_all(
         b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-cache\r\n\
           Connection: close\r\n\r\n",
     )?;
-    let mut last: Option<Snapshot> = None;
+    let mut last: Option<(Snapshot, Value)> = None;
     let mut last_write = Instant::now();
     loop {
         let snapshot = shared
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
             .clone();
-        if last.as_ref() != Some(&snapshot) {
+        // A command's timing can land after the snapshot that applied it (a paused sim sends
+        // no other): either changing sends an event.
+        let command = last_command_json(posts, &snapshot);
+        if last.as_ref() != Some(&(snapshot.clone(), command.clone())) {
             let mut value = snapshot_json(&snapshot);
             value["session"] = statics.clone();
+            value["last_command"] = command.clone();
             write!(out, "data: {value}\n\n")?;
             out.flush()?;
             last_write = Instant::now();
             if snapshot.stopped {
                 return Ok(());
             }
-            last = Some(snapshot);
+            last = Some((snapshot, command));
         } else if last_write.elapsed() >= KEEP_ALIVE {
             out.write_all(b": keep-alive\n\n")?;
             out.flush()?;
@@ -573,6 +592,44 @@ struct Posts {
     slots: Arc<std::sync::Mutex<Vec<(u64, Instant)>>>,
     next: Arc<std::sync::atomic::AtomicU64>,
     sent: Arc<std::sync::Mutex<u64>>,
+    /// The latest request that sent commands, from the page or any other client.
+    latest: Arc<std::sync::Mutex<Option<Posted>>>,
+}
+
+/// A request whose commands went to the sim: its receipt, what it asked, when it was sent.
+#[derive(Debug, Clone)]
+struct Posted {
+    receipt: u64,
+    what: String,
+    sent_at: Instant,
+}
+
+/// The latest request's timing as the page shows it: from the server sending its commands to
+/// the sim taking the last of them (any client's, the API's as well as the page's own clicks).
+/// `null` until one was sent; `applied_in_ms` null while the sim has not taken it yet.
+fn last_command_json(posts: &Posts, snapshot: &Snapshot) -> Value {
+    let latest = posts
+        .latest
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .clone();
+    let Some(posted) = latest else {
+        return Value::Null;
+    };
+    // The sim's `last_command_at` is this request's last command only while no later one has
+    // been taken; otherwise the page shows the request without a time.
+    let applied_in_ms = match snapshot.last_command_at {
+        Some(at) if snapshot.commands_handled == posted.receipt => {
+            Some(at.saturating_duration_since(posted.sent_at).as_secs_f64() * 1e3)
+        }
+        _ => None,
+    };
+    json!({
+        "receipt": posted.receipt,
+        "command": posted.what,
+        "applied": snapshot.commands_handled >= posted.receipt,
+        "applied_in_ms": applied_in_ms,
+    })
 }
 
 impl Posts {
@@ -674,6 +731,49 @@ pub enum WebRequest {
 
 fn one() -> usize {
     1
+}
+
+impl WebRequest {
+    /// A few words for the page's "last command" line.
+    fn describe(&self) -> String {
+        match self {
+            Self::Pause => "pause".into(),
+            Self::Resume => "resume".into(),
+            Self::Step { count } => format!("step {count}"),
+            Self::Speed { value } => format!("speed {value}×"),
+            Self::Reset => "reset".into(),
+            Self::Condition { value } => format!("condition {value}"),
+            Self::Seed { value } => format!("seed {value}"),
+            Self::StepLimit { value } => format!("step limit {value}"),
+            Self::Edit { edit } => format!("edit {edit}"),
+            Self::Attribution { on } => format!("attribution {}", on_off(*on)),
+            Self::Push { body, steps, .. } => format!("push {body} for {steps} steps"),
+            Self::Sampled { on } => format!("sampled actions {}", on_off(*on)),
+            Self::Compare { on } => format!("compare {}", on_off(*on)),
+            Self::Load { slot, dir } => format!("load {dir} as {slot}"),
+            Self::BreakOn { list } => format!("break on {list}"),
+            Self::Rewind { step } => format!("rewind to step {step}"),
+            Self::Fork { edits } => format!("fork {edits}"),
+            Self::EndFork => "end fork".into(),
+            Self::Scenario {
+                name: Some(name), ..
+            } => format!("scenario {name}"),
+            Self::Scenario { json: Some(_), .. } => "scenario (uploaded)".into(),
+            Self::Scenario { .. } => "no scenario".into(),
+            Self::Quit => "quit".into(),
+        }
+    }
+}
+
+fn on_off(on: bool) -> &'static str {
+    if on { "on" } else { "off" }
+}
+
+/// The control page with `first` (the state when it was asked for) inside it. `<` is escaped so
+/// that no string in the state can close the script element.
+fn page_with(first: &Value) -> String {
+    let json = first.to_string().replace('<', "\\u003c");
+    PAGE.replacen("/*FIRST_SNAPSHOT*/null", &json, 1)
 }
 
 /// The commands a request stands for, or why it changes nothing. Checked here against the

@@ -99,7 +99,7 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
         camera: args.camera,
     };
     let started = std::time::Instant::now();
-    let frames = render(VideoOptions {
+    let summary = render(VideoOptions {
         out: args.out.clone(),
         spec,
         actor,
@@ -110,6 +110,10 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
         start: super::start_state(args.init_state.as_deref())?,
     })?;
     let secs = started.elapsed().as_secs_f64();
+    for ending in &summary.endings {
+        eprintln!("{ending}");
+    }
+    let frames = summary.frames;
     eprintln!(
         "{frames} frames {}×{} in {secs:.1} s ({:.1} frames/s) → {}",
         spec.width,

@@ -505,6 +505,19 @@ impl Lane {
     pub fn outcome(&self) -> Option<&StepOutcome> {
         self.run.last.as_ref().map(|r| &r.outcome)
     }
+    /// How this lane's episode has ended so far (`ending` none while it runs), as `record` and
+    /// `video` print it.
+    pub fn ending(&self, label: String, episode: usize, seed: u64) -> LaneEnding {
+        let out = self.outcome();
+        LaneEnding {
+            label,
+            episode,
+            seed,
+            ending: out.and_then(|o| o.ending),
+            steps: self.steps(),
+            distance: out.map_or(self.env.goal_distance(), |o| o.distance),
+        }
+    }
     /// The latent the policy produced for the latest step (encoder policies).
     pub fn z(&self) -> Option<&[f32]> {
         self.run.last.as_ref()?.z.as_deref()
@@ -554,6 +567,30 @@ pub fn advance_lockstep(
         }
     }
     Ok(())
+}
+
+/// How one lane's episode ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LaneEnding {
+    /// The lane's model (with "(fork)" for a fork lane).
+    pub label: String,
+    pub episode: usize,
+    pub seed: u64,
+    pub ending: Option<crate::env::Ending>,
+    pub steps: usize,
+    /// Goal distance at the end (m).
+    pub distance: f64,
+}
+
+impl std::fmt::Display for LaneEnding {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ending = self.ending.map_or("not ended", crate::env::Ending::name);
+        write!(
+            f,
+            "{}: {ending} after {} steps, {:.2} m from the goal (episode {}, seed {})",
+            self.label, self.steps, self.distance, self.episode, self.seed
+        )
+    }
 }
 
 #[cfg(test)]

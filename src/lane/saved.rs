@@ -50,6 +50,11 @@ pub struct SavedState {
     pub checkpoint: Option<String>,
     /// The episode's seed.
     pub seed: u64,
+    /// The condition as a person would name it: `manual` where only hands and scenarios damage
+    /// joints (fatigue triggers off; `damage.condition` then gives the thresholds and a "fail"'s
+    /// scale, severe's in the live viewer), else `damage.condition`'s name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub condition: Option<String>,
     #[serde(flatten)]
     pub env: EnvSave,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -231,10 +236,16 @@ impl Lane {
             .map(<[f32]>::to_vec)
             .collect();
         let key_name = format!("gaitscope-step-{}", env.step);
+        let condition = if env.damage.fatigue_triggers {
+            env.damage.condition.name().to_string()
+        } else {
+            "manual".to_string()
+        };
         SavedState {
             format: STATE_FORMAT.to_string(),
             checkpoint,
             seed,
+            condition: Some(condition),
             mjcf_key: SavedState::mjcf_key(&key_name, env.time, &env.qpos, &env.qvel),
             env,
             window: Some(SavedWindow {

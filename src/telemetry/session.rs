@@ -11,7 +11,7 @@ use crate::env::AntEnv;
 use crate::lane::StepRecord;
 use crate::policy::ActionMode;
 
-pub use crate::lane::Actor;
+pub use crate::lane::{Actor, LaneEnding};
 
 /// An actor and where its entities go.
 pub struct LaneSpec {
@@ -697,17 +697,7 @@ impl Session {
     pub fn endings(&self, episode: usize) -> Vec<LaneEnding> {
         self.lanes
             .iter()
-            .map(|l| {
-                let out = l.core.outcome();
-                LaneEnding {
-                    label: l.series_label(),
-                    episode,
-                    seed: self.seed,
-                    ending: out.and_then(|o| o.ending),
-                    steps: l.core.steps(),
-                    distance: out.map_or(l.core.env().goal_distance(), |o| o.distance),
-                }
-            })
+            .map(|l| l.core.ending(l.series_label(), episode, self.seed))
             .collect()
     }
 
@@ -816,30 +806,6 @@ pub struct RecordSummary {
     pub endings: Vec<LaneEnding>,
     pub interrupted: bool,
     pub storage: Option<rerun::sink::MemorySinkStorage>,
-}
-
-/// How one lane's episode ended.
-#[derive(Debug, Clone, PartialEq)]
-pub struct LaneEnding {
-    /// The lane's model (with "(fork)" for a fork lane).
-    pub label: String,
-    pub episode: usize,
-    pub seed: u64,
-    pub ending: Option<crate::env::Ending>,
-    pub steps: usize,
-    /// Goal distance at the end (m).
-    pub distance: f64,
-}
-
-impl std::fmt::Display for LaneEnding {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let ending = self.ending.map_or("not ended", crate::env::Ending::name);
-        write!(
-            f,
-            "{}: {ending} after {} steps, {:.2} m from the goal (episode {}, seed {})",
-            self.label, self.steps, self.distance, self.episode, self.seed
-        )
-    }
 }
 
 #[derive(Debug, thiserror::Error)]
