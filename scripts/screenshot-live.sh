@@ -35,8 +35,8 @@ work=$(mktemp -d)
 export WGPU_BACKEND=vulkan XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}"
 mkdir -p "$(dirname "$out")"
 rm -f "$out"
-# One private X screen holds both windows: the viewer at the left, the panel at x = 1400.
-# The viewer outlives `live` (so a person can keep scrubbing); closing the X server ends it here.
+# One private X screen holds both windows: the viewer at the left, the panel at the right edge
+# (x = 1920 − 520 = 1400). --exit-after closes the viewer `live` started with it.
 xvfb-run -a -s "-screen 0 1920x1080x24" bash -c '
   "$0" live --exit-after "$1" --save "$2/session.rrd" "${@:3}" 2>"'"$log"'" &
   live=$!

@@ -670,7 +670,7 @@ fn native_live_and_the_viewer_it_spawns_listen_only_on_loopback() {
             "--checkpoint",
             "checkpoints/encoder-lstm",
             "--exit-after",
-            "40",
+            "15",
         ])
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .env("WGPU_BACKEND", "vulkan")
@@ -716,10 +716,29 @@ fn native_live_and_the_viewer_it_spawns_listen_only_on_loopback() {
     assert_eq!(ours.len(), 1, "one gaitscope under xvfb-run: {ours:?}");
     let mut sockets = listening_sockets(ours[0]);
     let viewer_sockets = listening_sockets(viewer);
-    // Neither outlives the test (the viewer would outlive `live` by design).
-    let _ = Command::new("kill")
-        .args([viewer.to_string(), ours[0].to_string()])
-        .status();
+    // --exit-after ends the session and the viewer it started: nothing is left running.
+    let deadline = Instant::now() + WAIT;
+    while live.0.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "live outlived --exit-after");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let viewer_left = Path::new(&format!("/proc/{viewer}")).exists();
+    if viewer_left {
+        let _ = Command::new("kill").arg(viewer.to_string()).status();
+    }
+    let mut said = said.join("\n");
+    while let Ok(line) = rx.try_recv() {
+        said.push('\n');
+        said.push_str(&line);
+    }
+    assert!(
+        !viewer_left,
+        "the viewer outlived live --exit-after: {said}"
+    );
+    assert!(
+        said.contains("closed the Rerun viewer it started"),
+        "{said}"
+    );
     assert!(
         viewer_sockets.iter().any(|(_, p)| *p == port),
         "{viewer_sockets:?}"

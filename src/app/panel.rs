@@ -746,8 +746,20 @@ pub struct PanelOptions {
     pub exit_after: Option<Duration>,
 }
 
+/// The panel window's size (logical points).
+const PANEL_SIZE: [f32; 2] = [520.0, 1000.0];
+
+/// Where the panel goes on a monitor of `monitor` points: its top-right corner, wholly on
+/// screen (a fixed x once put it half off a 1600-point screen), the left of the screen for the
+/// viewer.
+fn panel_position(monitor: egui::Vec2) -> egui::Pos2 {
+    egui::pos2((monitor.x - PANEL_SIZE[0]).max(0.0), 0.0)
+}
+
 struct LiveApp {
     panel: Panel,
+    /// Moved to its place once the monitor's size is known (the first frames).
+    placed: bool,
     started: Instant,
     exit_after: Option<Duration>,
     cpu_total: f64,
@@ -763,6 +775,14 @@ impl eframe::App for LiveApp {
             stats.seconds = elapsed.as_secs_f64();
             self.cpu_total += f64::from(frame.info().cpu_usage.unwrap_or(0.0));
             stats.mean_frame_cpu_ms = 1000.0 * self.cpu_total / stats.frames as f64;
+        }
+        if !self.placed
+            && let Some(monitor) = ui.ctx().input(|i| i.viewport().monitor_size)
+        {
+            let at = panel_position(monitor);
+            ui.ctx()
+                .send_viewport_cmd(egui::ViewportCommand::OuterPosition(at));
+            self.placed = true;
         }
         egui::CentralPanel::default().show(ui, |ui| {
             egui::ScrollArea::vertical().show(ui, |ui| self.panel.ui(ui));
@@ -789,8 +809,7 @@ pub fn run_panel(link: SimLink, options: PanelOptions) -> Result<PanelStats, Pan
     let native = eframe::NativeOptions {
         viewport: egui::ViewportBuilder::default()
             .with_title("gaitscope — live")
-            .with_inner_size([520.0, 1000.0])
-            .with_position([1400.0, 0.0]),
+            .with_inner_size(PANEL_SIZE),
         ..Default::default()
     };
     let app_stats = stats.clone();
@@ -801,6 +820,7 @@ pub fn run_panel(link: SimLink, options: PanelOptions) -> Result<PanelStats, Pan
         Box::new(move |_cc| {
             Ok(Box::new(LiveApp {
                 panel,
+                placed: false,
                 started: Instant::now(),
                 exit_after: options.exit_after,
                 cpu_total: 0.0,
@@ -811,4 +831,27 @@ pub fn run_panel(link: SimLink, options: PanelOptions) -> Result<PanelStats, Pan
     .map_err(|e| PanelError::Window(e.to_string()))?;
     let stats = stats.lock().unwrap_or_else(|p| p.into_inner()).clone();
     Ok(stats)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{PANEL_SIZE, egui, panel_position};
+
+    #[test]
+    fn the_panel_sits_wholly_on_screen_at_the_top_right() {
+        // 1600 points wide: x = 1600 − 520 = 1080, its right edge on the screen's.
+        assert_eq!(
+            panel_position(egui::vec2(1600.0, 1000.0)),
+            egui::pos2(1080.0, 0.0)
+        );
+        assert_eq!(
+            panel_position(egui::vec2(1920.0, 1080.0)).x + PANEL_SIZE[0],
+            1920.0
+        );
+        // Narrower than the panel: its left edge stays on screen.
+        assert_eq!(
+            panel_position(egui::vec2(400.0, 300.0)),
+            egui::pos2(0.0, 0.0)
+        );
+    }
 }

@@ -151,9 +151,73 @@ pub fn require_display(what: &'static str) -> Result<(), ViewerError> {
     Ok(())
 }
 
+/// A viewer `live` streams to: its address, and its process when this process started it
+/// (none when one already listening on Rerun's port was reused).
+#[derive(Debug)]
+pub struct SpawnedViewer {
+    pub url: String,
+    pub pid: Option<u32>,
+}
+
+impl SpawnedViewer {
+    /// Ends the viewer this process started (a scripted `--exit-after` run leaves nothing
+    /// behind): SIGTERM, reaped within `patience`, SIGKILL after. Whether one was stopped.
+    pub fn stop(&self, patience: std::time::Duration) -> bool {
+        let Some(pid) = self.pid else {
+            return false;
+        };
+        let Ok(pid) = libc::pid_t::try_from(pid) else {
+            return false;
+        };
+        // SAFETY: plain syscalls on our own child (found by parent pid and executable), which
+        // stays ours until reaped here, so the pid cannot have been reused.
+        unsafe {
+            libc::kill(pid, libc::SIGTERM);
+            let deadline = std::time::Instant::now() + patience;
+            let mut status = 0;
+            while libc::waitpid(pid, &mut status, libc::WNOHANG) == 0 {
+                if std::time::Instant::now() >= deadline {
+                    libc::kill(pid, libc::SIGKILL);
+                    libc::waitpid(pid, &mut status, 0);
+                    break;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+        }
+        true
+    }
+}
+
+/// This process's children running `exe` (by /proc: parent pid and executable).
+fn children_running(exe: &Path) -> Vec<u32> {
+    let me = std::process::id();
+    let Ok(exe) = exe.canonicalize() else {
+        return Vec::new();
+    };
+    let parent = |pid: u32| -> Option<u32> {
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+        // "pid (comm) state ppid …": comm may hold spaces, so split after its ')'.
+        stat.rsplit_once(')')?
+            .1
+            .split_whitespace()
+            .nth(1)?
+            .parse()
+            .ok()
+    };
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|&pid| parent(pid) == Some(me))
+        .filter(|&pid| std::fs::read_link(format!("/proc/{pid}/exe")).is_ok_and(|p| p == exe))
+        .collect()
+}
+
 /// Starts the viewer listening for our stream (or reuses one already listening on Rerun's
-/// port) and returns the address to stream to.
-pub fn spawn_viewer(viewer: &Path) -> Result<String, ViewerError> {
+/// port): the address to stream to, and the process if it is ours.
+pub fn spawn_viewer(viewer: &Path) -> Result<SpawnedViewer, ViewerError> {
+    let before = children_running(viewer);
     let opts = rerun::SpawnOptions {
         executable_path: Some(viewer.display().to_string()),
         // Loopback only: Rerun's default bind (0.0.0.0) would let anyone on the network
@@ -169,7 +233,13 @@ pub fn spawn_viewer(viewer: &Path) -> Result<String, ViewerError> {
         ..Default::default()
     };
     let info = rerun::spawn(&opts).map_err(|e| ViewerError::Spawn(e.to_string()))?;
-    Ok(format!("rerun+http://127.0.0.1:{}/proxy", info.port))
+    let pid = children_running(viewer)
+        .into_iter()
+        .find(|pid| !before.contains(pid));
+    Ok(SpawnedViewer {
+        url: format!("rerun+http://127.0.0.1:{}/proxy", info.port),
+        pid,
+    })
 }
 
 /// Checks that something listens at a `rerun+http(s)://HOST:PORT/proxy` address, so that

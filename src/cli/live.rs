@@ -211,19 +211,20 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
         )?
     } else {
         viewer::require_display("gaitscope live")?;
-        let url = match &args.connect {
+        let (url, spawned) = match &args.connect {
             Some(url) => {
                 viewer::check_reachable(url)?;
-                url.clone()
+                (url.clone(), None)
             }
             None => {
                 let path = viewer::find_viewer(args.viewer.as_deref())?;
-                let url = viewer::spawn_viewer(&path)?;
+                let spawned = viewer::spawn_viewer(&path)?;
                 eprintln!(
-                    "streaming to the Rerun viewer ({}) at {url}",
-                    path.display()
+                    "streaming to the Rerun viewer ({}) at {}",
+                    path.display(),
+                    spawned.url
                 );
-                url
+                (spawned.url.clone(), Some(spawned))
             }
         };
         let sink = Sink::Viewer {
@@ -242,6 +243,17 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
             stats.fps(),
             stats.mean_frame_cpu_ms
         );
+        // A person closing the panel keeps the viewer to scrub the session; a scripted
+        // --exit-after run leaves nothing running.
+        if let Some(viewer) = &spawned {
+            if args.exit_after.is_some() {
+                if viewer.stop(std::time::Duration::from_secs(5)) {
+                    eprintln!("closed the Rerun viewer it started (--exit-after)");
+                }
+            } else {
+                eprintln!("the Rerun viewer stays open to scrub the session; close it when done");
+            }
+        }
         finished
     };
     // A viewer closed before the end leaves data unsent; the session's report still prints.
