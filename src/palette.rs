@@ -140,6 +140,21 @@ pub fn hsl_to_rgb(hue: f64, sat: f64, light: f64) -> [u8; 3] {
     [to8(r), to8(g), to8(b)]
 }
 
+/// A signed contribution on a diverging scale: white at 0, red as it raises the quantity, blue
+/// as it lowers it, full colour at `max_abs` (the largest magnitude shown beside it).
+pub fn diverging(value: f64, max_abs: f64) -> [u8; 3] {
+    const RED: [f64; 3] = [200.0, 40.0, 40.0];
+    const BLUE: [f64; 3] = [40.0, 90.0, 200.0];
+    let t = if max_abs > 0.0 && value.is_finite() {
+        (value / max_abs).clamp(-1.0, 1.0)
+    } else {
+        0.0
+    };
+    let end = if t >= 0.0 { RED } else { BLUE };
+    let mix = |c: f64| (255.0 + (c - 255.0) * t.abs()).round() as u8;
+    [mix(end[0]), mix(end[1]), mix(end[2])]
+}
+
 /// A leg's state in the gait diagram while its foot is on the floor: its worst joint's torque,
 /// as a category (the state view colours a fixed set of values).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -199,6 +214,17 @@ impl LegTorque {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_diverging_scale_is_white_at_zero_and_saturates_at_the_largest() {
+        assert_eq!(diverging(0.0, 2.0), [255, 255, 255]);
+        assert_eq!(diverging(2.0, 2.0), [200, 40, 40]);
+        assert_eq!(diverging(-5.0, 2.0), [40, 90, 200]);
+        // Halfway to red: 255 + (200 − 255)/2 = 227.5 → 228, 255 − 107.5 = 147.5 → 148.
+        assert_eq!(diverging(1.0, 2.0), [228, 148, 148]);
+        assert_eq!(diverging(f64::NAN, 2.0), [255, 255, 255]);
+        assert_eq!(diverging(1.0, 0.0), [255, 255, 255]);
+    }
 
     #[test]
     fn colour_follows_the_torque_lost_not_the_trigger() {

@@ -781,6 +781,51 @@ fn the_attribution_view_adds_up_to_how_far_z_moved() {
         names[0].starts_with("hip_4") && names[8].starts_with("torso"),
         "{names:?}"
     );
+    // The picture of the grid: its rows named, its cells the tensor's values on the diverging
+    // scale (red raised ‖z − z(0)‖, blue lowered it), pixel for pixel.
+    let labels: Vec<String> = chunks
+        .iter()
+        .filter(|c| {
+            c.is_static() && c.entity_path().to_string() == "/ant/latent/attribution_map/labels"
+        })
+        .flat_map(|c| {
+            c.iter_slices::<String>(rerun::Points2D::descriptor_labels().component)
+                .flat_map(|s| s.iter().map(|l| l.to_string()).collect::<Vec<_>>())
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let groups: Vec<String> = names
+        .iter()
+        .map(|n| n.split(" →").next().unwrap().to_string())
+        .collect();
+    assert_eq!(labels[..10], groups[..], "{labels:?}");
+    assert_eq!(labels[10..], ["oldest", "newest"]);
+    let grids = by_step(&chunks, "/ant/latent/attribution", |c| {
+        c.iter_component::<rerun::components::TensorData>(
+            rerun::Tensor::descriptor_data().component,
+        )
+        .map(|t| match &t.first().unwrap().0.buffer {
+            rerun::datatypes::TensorBuffer::F32(v) => v.to_vec(),
+            other => panic!("{other:?}"),
+        })
+        .collect()
+    });
+    let pictures = by_step(&chunks, "/ant/latent/attribution_map", |c| {
+        c.iter_component::<rerun::components::ImageBuffer>(
+            rerun::Image::descriptor_buffer().component,
+        )
+        .map(|b| b.first().unwrap().0.to_vec())
+        .collect()
+    });
+    assert_eq!(pictures.len(), grids.len(), "one picture per step");
+    for (step, grid) in &grids {
+        let max_abs = grid.iter().fold(0.0f64, |m, v| m.max(f64::from(*v).abs()));
+        let expected: Vec<u8> = grid
+            .iter()
+            .flat_map(|v| gaitscope::palette::diverging(f64::from(*v), max_abs))
+            .collect();
+        assert_eq!(pictures[step], expected, "step {step}");
+    }
 }
 
 /// A recording gaitscope made with Rerun 0.36 (committed before the move to 0.41) still reads:

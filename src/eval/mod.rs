@@ -917,8 +917,8 @@ fn across_seeds_figures(
         &[
             "success",
             "timed out",
-            "fell after damage",
-            "fell before damage",
+            "ended early after damage",
+            "ended early before damage",
         ],
         &panels,
     )?;

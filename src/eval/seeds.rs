@@ -34,17 +34,20 @@ pub fn group_of(label: &str) -> String {
     }
 }
 
-/// How an episode ended.
+/// How an episode ended, for the failure-mode tables: an early ending (the torso left the
+/// height band — leapt above it or collapsed below it — or the simulation went unstable) split
+/// by whether damage could have caused it. Which early ending it was is
+/// [`EpisodeRecord::ending`], counted beside these in [`FailureCounts`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FailureMode {
     Success,
-    /// Fell (or flipped) before any step ran under damage (no trigger yet, or only on the step
-    /// it fell; no joint weakened by a scenario yet): damage cannot have caused it.
+    /// Ended early before any step ran under damage (no trigger yet, or only on the step it
+    /// ended; no joint weakened by a scenario yet): damage cannot have caused it.
     TerminatedBeforeDamage,
-    /// Fell with at least one step taken under damage.
+    /// Ended early with at least one step taken under damage.
     TerminatedAfterDamage,
-    /// Neither reached the goal nor fell within the step limit.
+    /// Neither reached the goal nor ended early within the step limit (upright or upside down).
     TimedOut,
 }
 
@@ -69,24 +72,47 @@ impl EpisodeRecord {
     }
 }
 
-/// Episodes per failure mode.
+/// Episodes per failure mode, and what the early endings and timeouts were.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct FailureCounts {
     pub success: usize,
     pub terminated_before_damage: usize,
     pub terminated_after_damage: usize,
     pub timed_out: usize,
+    /// Early endings by kind (before and after damage together): the torso above the height
+    /// band, below it, an unstable simulation, and — in evaluations saved before endings were
+    /// named — not recorded.
+    pub leapt: usize,
+    pub collapsed: usize,
+    pub unstable: usize,
+    pub early_unrecorded: usize,
+    /// Timeouts with the torso's up axis below the horizon (a flipped Ant stays in the band).
+    pub timed_out_upside_down: usize,
 }
 
 impl FailureCounts {
     pub fn of<'a>(episodes: impl IntoIterator<Item = &'a EpisodeRecord>) -> Self {
+        use crate::env::Ending;
         let mut c = Self::default();
         for e in episodes {
-            match e.failure_mode() {
+            let mode = e.failure_mode();
+            match mode {
                 FailureMode::Success => c.success += 1,
                 FailureMode::TerminatedBeforeDamage => c.terminated_before_damage += 1,
                 FailureMode::TerminatedAfterDamage => c.terminated_after_damage += 1,
                 FailureMode::TimedOut => c.timed_out += 1,
+            }
+            let early = matches!(
+                mode,
+                FailureMode::TerminatedBeforeDamage | FailureMode::TerminatedAfterDamage
+            );
+            match e.ending {
+                Some(Ending::Leapt) => c.leapt += 1,
+                Some(Ending::Collapsed) => c.collapsed += 1,
+                Some(Ending::Unstable) => c.unstable += 1,
+                Some(Ending::TimeoutUpsideDown) => c.timed_out_upside_down += 1,
+                None if early => c.early_unrecorded += 1,
+                _ => {}
             }
         }
         c
@@ -94,6 +120,25 @@ impl FailureCounts {
 
     pub fn total(&self) -> usize {
         self.success + self.terminated_before_damage + self.terminated_after_damage + self.timed_out
+    }
+
+    /// The early endings by kind, in words ("leapt 11, collapsed 1"; "none").
+    pub fn early_kinds(&self) -> String {
+        let kinds: Vec<String> = [
+            ("leapt above the band", self.leapt),
+            ("collapsed below it", self.collapsed),
+            ("unstable", self.unstable),
+            ("kind not recorded", self.early_unrecorded),
+        ]
+        .iter()
+        .filter(|(_, n)| *n > 0)
+        .map(|(what, n)| format!("{what} {n}"))
+        .collect();
+        if kinds.is_empty() {
+            "none".to_string()
+        } else {
+            kinds.join(", ")
+        }
     }
 }
 
@@ -648,6 +693,51 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
 }
 
 impl AcrossSeeds {
+    /// How the episodes ended, per model and condition (one seed or several).
+    fn failure_modes_markdown(&self) -> String {
+        let interval = |i: &Interval| {
+            format!(
+                "{:.0} % [{:.0}, {:.0}]",
+                100.0 * i.mean,
+                100.0 * i.low,
+                100.0 * i.high
+            )
+        };
+        let mut s = "\n**Failure modes** (episodes summed over seeds; an early ending — the torso leaving \
+              the height band, above or below, or an unstable simulation — counts as after damage \
+              once a step was taken with a joint triggered, dead or weakened by a scenario; a \
+              timeout upside down is one with the torso's up axis below the horizon) and **success \
+              among the episodes that reached damage**, the only ones where adapting to damage can \
+              matter (mean over seeds [95 % bootstrap], episodes)\n\n\
+              | model | condition | success | ended early before damage | ended early after damage | \
+              how they ended early | timed out | success once damaged |\n\
+              |---|---|---:|---:|---:|---|---:|---:|\n"
+            .to_string();
+        for g in &self.groups {
+            let f = g.failure_modes;
+            let n = f.total().max(1) as f64;
+            let share = |k: usize| format!("{k} ({:.0} %)", 100.0 * k as f64 / n);
+            let reached: usize = g.runs.iter().map(|r| r.success_after_damage.n).sum();
+            let after = if reached == 0 {
+                "– (no episode reached damage)".to_string()
+            } else {
+                format!("{} (n = {reached})", interval(&g.success_after_damage))
+            };
+            s += &format!(
+                "| {} | {} | {} | {} | {} | {} | {}, {} upside down | {after} |\n",
+                g.group,
+                g.condition,
+                share(f.success),
+                share(f.terminated_before_damage),
+                share(f.terminated_after_damage),
+                f.early_kinds(),
+                share(f.timed_out),
+                f.timed_out_upside_down,
+            );
+        }
+        s
+    }
+
     /// The tables of the evaluation across seeds, as Markdown.
     /// Whether some model was evaluated with more than one training seed: only then do the
     /// across-seed tables and seed-level tests mean anything.
@@ -657,10 +747,11 @@ impl AcrossSeeds {
 
     pub fn markdown(&self) -> String {
         if !self.has_several_seeds() {
-            return "One training seed per model: the per-run tables above are the whole \
-                    story (the across-seed section needs several runs of a model, e.g. \
-                    `--checkpoint checkpoints/seeds/*-s*`).\n"
-                .to_string();
+            return "One training seed per model: the per-run tables above and the failure \
+                    modes below are the whole story (the across-seed section needs several runs \
+                    of a model, e.g. `--checkpoint checkpoints/seeds/*-s*`).\n"
+                .to_string()
+                + &self.failure_modes_markdown();
         }
         let pct = |r: f64| format!("{:.0} %", 100.0 * r);
         let interval = |i: &Interval| {
@@ -693,32 +784,7 @@ impl AcrossSeeds {
                 interval(&g.success[&250]),
             );
         }
-        s += "\n**Failure modes** (episodes summed over seeds; a fall counts as after damage once a \
-              step was taken with a joint triggered or weakened by a scenario) and **success among \
-              the episodes that reached damage**, the only ones where adapting to damage can matter \
-              (mean over seeds [95 % bootstrap], episodes)\n\n\
-              | model | condition | success | fell before damage | fell after damage | timed out | \
-              success once damaged |\n|---|---|---:|---:|---:|---:|---:|\n";
-        for g in &self.groups {
-            let f = g.failure_modes;
-            let n = f.total().max(1) as f64;
-            let share = |k: usize| format!("{k} ({:.0} %)", 100.0 * k as f64 / n);
-            let reached: usize = g.runs.iter().map(|r| r.success_after_damage.n).sum();
-            let after = if reached == 0 {
-                "– (no episode reached damage)".to_string()
-            } else {
-                format!("{} (n = {reached})", interval(&g.success_after_damage))
-            };
-            s += &format!(
-                "| {} | {} | {} | {} | {} | {} | {after} |\n",
-                g.group,
-                g.condition,
-                share(f.success),
-                share(f.terminated_before_damage),
-                share(f.terminated_after_damage),
-                share(f.timed_out),
-            );
-        }
+        s += &self.failure_modes_markdown();
         if !self.comparisons.is_empty() {
             s += "\n**Paired by training seed**: each encoder against the baseline, and each \
                   pair of encoders (success@500 on the same eval seeds; b = reference only, c = \
@@ -1047,6 +1113,37 @@ mod tests {
                 c.timed_out
             ),
             (3, 2, 4, 3)
+        );
+        // What they were: here every early ending leapt above the band.
+        assert_eq!((c.leapt, c.collapsed, c.timed_out_upside_down), (6, 0, 0));
+        assert_eq!(c.early_kinds(), "leapt above the band 6");
+        // Named endings are counted by kind; an early ending saved before endings were named
+        // says so rather than guessing; a timeout upside down is still a timeout.
+        let mut eps = eps;
+        eps[2].ending = Some(crate::env::Ending::Collapsed);
+        eps[3].ending = None;
+        eps[8].ending = Some(crate::env::Ending::TimeoutUpsideDown);
+        let c = FailureCounts::of(&eps);
+        assert_eq!(
+            (
+                c.terminated_before_damage,
+                c.terminated_after_damage,
+                c.timed_out
+            ),
+            (2, 4, 3)
+        );
+        assert_eq!(
+            (
+                c.leapt,
+                c.collapsed,
+                c.early_unrecorded,
+                c.timed_out_upside_down
+            ),
+            (4, 1, 1, 1)
+        );
+        assert_eq!(
+            c.early_kinds(),
+            "leapt above the band 4, collapsed below it 1, kind not recorded 1"
         );
         assert_eq!(c.total(), eps.len());
     }

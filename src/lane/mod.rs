@@ -574,6 +574,7 @@ pub fn advance_lockstep(
 pub struct LaneEnding {
     /// The lane's model (with "(fork)" for a fork lane).
     pub label: String,
+    /// Counted from 1.
     pub episode: usize,
     pub seed: u64,
     pub ending: Option<crate::env::Ending>,

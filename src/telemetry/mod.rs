@@ -23,6 +23,7 @@
 //! | `{root}/gait/{leg}` | StateChange: a stance state named by the leg's damage while its foot touches the floor, an empty state (a gap) in swing; StateConfiguration (colours) static | on changes |
 //! | `{root}/latent/z` | Scalars × 32 | per step (encoder policies) |
 //! | `{root}/latent/attribution`, `{root}/latent/attribution_groups` | Tensor 16 × 10 (window slot × feature group: why ‖z − z(0)‖ is what it is, integrated gradients) and its group totals as Scalars × 10 | per step, with the attribution view on |
+//! | `{root}/latent/attribution_map`, `…/labels` | the same grid as an RGB Image (one pixel a cell, white 0, red raised ‖z − z(0)‖, blue lowered it) and its row names as labelled Points2D | per step / static |
 //! | `{root}/latent/pca`, `{root}/latent/pca_trail` | Points2D (current point, large; episode every 5th step), coloured by triggered joints | with `probe.json` |
 //! | `{root}/latent/pca3`, `{root}/latent/pca3_trail` | Points3D, the same in the first three PCA axes | with `probe.json` |
 //! | `{root}/probe/predicted`, `{root}/probe/truth` | Scalars × 8: P(joint damaged) from z, and the truth | with `probe.json` |
@@ -394,13 +395,14 @@ pub fn layout_for(
     let latent = series(TimeSeriesView::new("z").with_contents(paths(&["latent/z"])));
     // Its legend stays: ten named groups are the point of this plot.
     let why: rerun::blueprint::ContainerLike =
-        TimeSeriesView::new("Why z moved, per group (attribution)")
+        TimeSeriesView::new("Why z moved: each group's share of ‖z − z(0)‖")
             .with_contents(paths(&["latent/attribution_groups"]))
             .into();
-    let why_grid: rerun::blueprint::ContainerLike =
-        rerun::blueprint::TensorView::new("Why z moved: window slot × group")
-            .with_contents(paths(&["latent/attribution"]))
-            .into();
+    let why_grid: rerun::blueprint::ContainerLike = rerun::blueprint::Spatial2DView::new(
+        "Why z moved: group × window slot (red raised ‖z − z(0)‖, blue lowered it)",
+    )
+    .with_contents(paths(&["latent/attribution_map/**"]))
+    .into();
     let tabs = |views: Vec<rerun::blueprint::ContainerLike>, shown: Option<String>| {
         let tabs = rerun::blueprint::Tabs::new(views);
         match shown {
@@ -1330,7 +1332,7 @@ impl AntLogger {
             .collect();
         let data = rerun::datatypes::TensorData::new(
             vec![groups.len() as u64, grid.len() as u64],
-            rerun::datatypes::TensorBuffer::F32(values.into()),
+            rerun::datatypes::TensorBuffer::F32(values.clone().into()),
         )
         .with_dim_names([
             format!("rows: {}", names.join(", ")),
@@ -1340,13 +1342,49 @@ impl AntLogger {
             self.path("latent/attribution").as_str(),
             &rerun::Tensor::new(data),
         )?;
+        // The same grid as a picture with its rows named (a tensor view names only its axes):
+        // one pixel a cell, red where the cell raised ‖z − z(0)‖, blue where it lowered it.
+        // From the tensor's own (f32) values, so the two agree to the pixel.
+        let cells: Vec<f64> = values.iter().map(|&v| f64::from(v)).collect();
+        let max_abs = cells.iter().fold(
+            0.0f64,
+            |m, v| if v.is_finite() { m.max(v.abs()) } else { m },
+        );
+        let pixels: Vec<u8> = cells
+            .iter()
+            .flat_map(|&v| palette::diverging(v, max_abs))
+            .collect();
+        let map = self.path("latent/attribution_map");
+        self.rec.log(
+            map.as_str(),
+            &rerun::Image::from_rgb24(pixels, [grid.len() as u32, groups.len() as u32]),
+        )?;
         let path = self.path("latent/attribution_groups");
         if !self.attribution_named {
+            // Row names left of the grid, and which end of the window is which.
+            let slots = grid.len() as f32;
+            let rows = names.len() as f32;
+            let labels = names
+                .iter()
+                .map(|n| n.to_string())
+                .chain(["oldest".to_string(), "newest".to_string()]);
+            let at = (0..names.len())
+                .map(|g| (-2.0, g as f32 + 0.5))
+                .chain([(0.5, rows + 0.8), (slots - 0.5, rows + 0.8)]);
+            self.rec.log_static(
+                format!("{map}/labels").as_str(),
+                &rerun::Points2D::new(at)
+                    .with_radii([0.05])
+                    .with_labels(labels)
+                    .with_show_labels(true),
+            )?;
             let n = names.len();
             self.rec.log_static(
                 path.as_str(),
                 &rerun::SeriesLines::new()
-                    .with_names(names.iter().map(|g| format!("{g} → ‖z − z(0)‖")))
+                    // Short names: the view's title says what they add up to, and a legend
+                    // of ten long names covered the lines.
+                    .with_names(names.iter().map(|g| g.to_string()))
                     .with_colors((0..n).map(|i| {
                         let [r, g, b] = palette::hsl_to_rgb(360.0 * i as f64 / n as f64, 0.75, 0.6);
                         rerun::Color::from_rgb(r, g, b)

@@ -986,7 +986,8 @@ pub fn record(
                 steps: session.lanes()[0].env().steps(),
             });
         }
-        endings.extend(session.endings(k));
+        // Episodes counted from 1, as every message names them.
+        endings.extend(session.endings(k + 1));
         episodes_done += 1;
     }
     match &file {
