@@ -37,6 +37,14 @@ pub enum ExplainError {
     Input(String),
     #[error("attribution failed: {0}")]
     Candle(#[from] candle_core::Error),
+    #[error(transparent)]
+    Lane(#[from] crate::lane::LaneError),
+    #[error("--step {step} is beyond the episode, which ended after {steps} steps")]
+    StepBeyondEpisode { step: usize, steps: usize },
+    #[error(
+        "--step {step}: the episode ended after {steps} steps, with no decision left to explain"
+    )]
+    NoDecisionLeft { step: usize, steps: usize },
 }
 
 /// One step's attribution.
@@ -250,23 +258,24 @@ pub fn explain_step(
             "explain needs a checkpoint's policy".into(),
         ));
     };
-    let mut lane = crate::lane::Lane::new(actor, requested, seed)
-        .map_err(|e| ExplainError::Input(e.to_string()))?;
-    while lane.steps() < step {
-        if lane.is_done() {
-            return Err(ExplainError::Input(format!(
-                "--step {step} is beyond the episode, which ended after {} steps",
-                lane.steps()
-            )));
-        }
-        lane.advance(actor, crate::policy::ActionMode::Deterministic)
-            .map_err(|e| ExplainError::Input(e.to_string()))?;
+    let mut lane = crate::lane::Lane::new(actor, requested, seed)?;
+    lane.run_while(
+        actor,
+        crate::policy::ActionMode::Deterministic,
+        |lane| lane.steps() < step,
+        |_| Ok::<(), ExplainError>(()),
+    )?;
+    if lane.steps() < step {
+        return Err(ExplainError::StepBeyondEpisode {
+            step,
+            steps: lane.steps(),
+        });
     }
     if lane.is_done() {
-        return Err(ExplainError::Input(format!(
-            "--step {step}: the episode ended after {} steps, with no decision left to explain",
-            lane.steps()
-        )));
+        return Err(ExplainError::NoDecisionLeft {
+            step,
+            steps: lane.steps(),
+        });
     }
     let obs: Vec<f32> = lane.obs().iter().map(|&v| v as f32).collect();
     let window = lane.window().as_slice();

@@ -64,11 +64,10 @@ pub fn run_builtin_episode_with(
     let actor = crate::lane::Actor::Builtin(policy);
     let mut lane = crate::lane::Lane::new(&actor, env.config(), seed)?;
     let mut episode_return = 0.0;
-    while !lane.is_done() {
-        let record = lane.advance(&actor, crate::policy::ActionMode::Deterministic)?;
+    lane.run_to_end(&actor, crate::policy::ActionMode::Deterministic, |record| {
         episode_return += record.outcome.reward.total;
-        sink(&LaneRecord::new(episode, seed, "main", record)).map_err(ReplayError::Write)?;
-    }
+        sink(&LaneRecord::new(episode, seed, "main", record)).map_err(ReplayError::Write)
+    })?;
     let last = lane
         .outcome()
         .cloned()
@@ -205,8 +204,8 @@ pub enum ReplayError {
     Write(#[source] std::io::Error),
     #[error("policy inference failed: {0}")]
     Policy(#[from] candle_core::Error),
-    #[error("--fork-at {at} is beyond the episode, which ended after {steps} steps")]
-    ForkBeyondEpisode { at: usize, steps: usize },
+    #[error(transparent)]
+    ForkBeyondEpisode(#[from] crate::lane::ForkBeyondEpisode),
     #[error(transparent)]
     Lane(#[from] crate::lane::LaneError),
     #[error(
@@ -327,10 +326,13 @@ pub fn replay(
             .chain(actions.iter().copied())
             .collect(),
     );
-    while !lane.is_done() && lane.steps() < first + actions.len() {
-        let record = lane.advance(&actor, crate::policy::ActionMode::Deterministic)?;
-        sink(&StepLine::from(record)).map_err(ReplayError::Write)?;
-    }
+    let end = first + actions.len();
+    lane.run_while(
+        &actor,
+        crate::policy::ActionMode::Deterministic,
+        |lane| lane.steps() < end,
+        |record| sink(&StepLine::from(record)).map_err(ReplayError::Write),
+    )?;
     Ok(lane.steps() - first)
 }
 
@@ -413,19 +415,26 @@ pub fn run_policy_episode(
                    saved: &mut Option<crate::lane::SavedState>|
      -> Result<f64, ReplayError> {
         let mut episode_return = 0.0;
-        while !lane.is_done() && stop_at.is_none_or(|k| lane.steps() < k) {
-            if save_at == Some(lane.steps()) && name == "main" {
-                *saved = Some(lane.save_state(actor, seed));
-            }
-            let record = lane.advance(actor, mode)?;
-            episode_return += record.outcome.reward.total;
-            sink(&LaneRecord::new(episode, seed, name, record)).map_err(ReplayError::Write)?;
-        }
+        lane.run_while(
+            actor,
+            mode,
+            |lane| {
+                let go_on = stop_at.is_none_or(|k| lane.steps() < k);
+                if go_on && save_at == Some(lane.steps()) && name == "main" {
+                    *saved = Some(lane.save_state(actor, seed));
+                }
+                go_on
+            },
+            |record| {
+                episode_return += record.outcome.reward.total;
+                sink(&LaneRecord::new(episode, seed, name, record)).map_err(ReplayError::Write)
+            },
+        )?;
         Ok(episode_return)
     };
     let before = run(&mut lane, "main", fork.map(|f| f.at), &mut saved)?;
     let branch = fork
-        .filter(|f| !lane.is_done() && lane.steps() == f.at)
+        .filter(|f| f.due(&lane))
         .map(|f| lane.fork(&f.edits))
         .transpose()?;
     let after = run(&mut lane, "main", None, &mut saved)?;
@@ -450,10 +459,7 @@ pub fn run_policy_episode(
         });
     };
     let Some(mut fork_lane) = branch else {
-        return Err(ReplayError::ForkBeyondEpisode {
-            at: f.at,
-            steps: summary.steps,
-        });
+        return Err(f.beyond(&lane).into());
     };
     let fork_return = run(&mut fork_lane, "fork", None, &mut None)?;
     let fork_last = fork_lane

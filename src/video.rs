@@ -40,8 +40,12 @@ pub enum VideoError {
     OddLanes(usize),
     #[error("--out {0} should end in .mp4")]
     NotMp4(PathBuf),
+    #[error("MuJoCo's renderer failed")]
+    Renderer(#[source] Box<dyn std::error::Error + Send + Sync>),
     #[error(transparent)]
-    Fork(#[from] crate::lane::LaneError),
+    Lane(#[from] crate::lane::LaneError),
+    #[error(transparent)]
+    ForkBeyondEpisode(#[from] crate::lane::ForkBeyondEpisode),
 }
 
 /// How the camera moves.
@@ -174,10 +178,10 @@ impl FrameRenderer {
         self.data.forward();
         self.renderer
             .sync_data(&mut self.data)
-            .map_err(|e| VideoError::Render(e.to_string()))?;
+            .map_err(|e| VideoError::Renderer(Box::new(e)))?;
         self.renderer
             .render()
-            .map_err(|e| VideoError::Render(e.to_string()))?;
+            .map_err(|e| VideoError::Renderer(Box::new(e)))?;
         let mut rgb = self
             .renderer
             .rgb_flat()
@@ -388,8 +392,7 @@ impl VideoLane {
         seed: u64,
         spec: FrameSpec,
     ) -> Result<Self, VideoError> {
-        let lane = crate::lane::Lane::new(&actor, requested, seed)
-            .map_err(|e| VideoError::Render(e.to_string()))?;
+        let lane = crate::lane::Lane::new(&actor, requested, seed)?;
         let renderer = FrameRenderer::new(lane.env(), spec)?;
         Ok(Self {
             label,
@@ -402,10 +405,7 @@ impl VideoLane {
 
     /// A second lane from this one's exact state with `edits` applied (a counterfactual fork).
     pub fn fork(&self, edits: &[crate::damage::Edit], spec: FrameSpec) -> Result<Self, VideoError> {
-        let lane = self
-            .lane
-            .fork(edits)
-            .map_err(|e| VideoError::Render(e.to_string()))?;
+        let lane = self.lane.fork(edits)?;
         let renderer = FrameRenderer::new(lane.env(), spec)?;
         let edits: Vec<String> = edits.iter().map(ToString::to_string).collect();
         Ok(Self {
@@ -438,8 +438,7 @@ impl VideoLane {
         }
         let record = self
             .lane
-            .advance(&self.actor, crate::policy::ActionMode::Deterministic)
-            .map_err(|e| VideoError::Render(e.to_string()))?;
+            .advance(&self.actor, crate::policy::ActionMode::Deterministic)?;
         // The lane's last frame says how its episode ended; it stays up while others go on.
         let label = match record.outcome.ending() {
             Some(ending) => format!("{}  ·  ENDED: {}", self.label, ending.to_uppercase()),
@@ -522,9 +521,7 @@ pub fn render(opts: VideoOptions) -> Result<VideoSummary, VideoError> {
     }
     if let Some(start) = &start {
         for lane in &mut lanes {
-            lane.lane
-                .start_from(start)
-                .map_err(|e| VideoError::Render(e.to_string()))?;
+            lane.lane.start_from(start)?;
         }
     }
     let mut encoder = Encoder::start(&out, spec)?;
@@ -564,8 +561,7 @@ pub fn render_episode(
     while lanes.iter().any(|l| !l.is_done()) {
         if let Some(f) = fork
             && !forked
-            && lanes[0].steps() == f.at
-            && !lanes[0].is_done()
+            && f.due(&lanes[0].lane)
         {
             let lane = lanes[0].fork(&f.edits, lane_spec)?;
             lanes.push(lane);
@@ -582,11 +578,7 @@ pub fn render_episode(
     if let Some(f) = fork
         && !forked
     {
-        return Err(VideoError::Render(format!(
-            "--fork-at {} is beyond the episode, which ended after {} steps",
-            f.at,
-            lanes[0].steps()
-        )));
+        return Err(f.beyond(&lanes[0].lane).into());
     }
     let endings = lanes
         .iter()

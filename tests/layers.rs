@@ -18,6 +18,9 @@ const LAYERS: &[&[&str]] = &[
     &["telemetry"],
     &["video", "app"],
     &["bench"],
+    // The binary's front door (src/main.rs, src/cli/): it reads the library through
+    // `gaitscope::`, and nothing below names it.
+    &["cli"],
 ];
 
 fn layer_of(module: &str) -> Option<usize> {
@@ -79,4 +82,81 @@ fn modules_only_depend_on_lower_layers() {
         "upward or sideways:\n{}",
         wrong.join("\n")
     );
+}
+
+/// The command line sits on top: its files reach the library only as `gaitscope::MODULE`, each
+/// a module of [`LAYERS`], and no library file names `cli`.
+#[test]
+fn the_cli_uses_the_library_from_above() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = vec![src.join("main.rs")];
+    files.extend(
+        std::fs::read_dir(src.join("cli"))
+            .unwrap()
+            .map(|e| e.unwrap().path()),
+    );
+    let mut named = 0;
+    for file in &files {
+        let text = std::fs::read_to_string(file).unwrap();
+        for (i, _) in text.match_indices("gaitscope::") {
+            let used: String = text[i + 11..]
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                .collect();
+            // A re-exported type (`gaitscope::Condition`) starts with a capital.
+            if used.starts_with(|c: char| c.is_ascii_lowercase()) {
+                named += 1;
+                let layer = layer_of(&used);
+                assert!(
+                    layer.is_some_and(|l| l < layer_of("cli").unwrap()),
+                    "{}: gaitscope::{used} is no library module below the CLI",
+                    file.display()
+                );
+            }
+        }
+    }
+    assert!(named > 50, "the CLI names the library's modules ({named})");
+    let mut refs = BTreeMap::new();
+    references(&src, None, &mut refs);
+    for (module, used) in &refs {
+        for (target, file) in used {
+            assert!(
+                target != "cli",
+                "{file}: the library's {module} names the CLI"
+            );
+        }
+    }
+}
+
+/// A lane changes only through its own methods: nothing hands out its env mutably (the old
+/// `Lane::env_mut` back door) and nothing outside src/lane/ asks for one.
+#[test]
+fn no_back_door_into_a_lane() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut offenders = Vec::new();
+    let mut stack = vec![src.clone()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+                continue;
+            }
+            if path.extension().is_none_or(|e| e != "rs") {
+                continue;
+            }
+            let text = std::fs::read_to_string(&path).unwrap();
+            let in_lane = path.starts_with(src.join("lane"));
+            for (n, line) in text.lines().enumerate() {
+                let code = line.split("//").next().unwrap_or("");
+                let back_door = code.contains("fn env_mut")
+                    || (in_lane && code.contains("pub fn") && code.contains("-> &mut AntEnv"))
+                    || (!in_lane && code.contains(".core.env_mut"));
+                if back_door {
+                    offenders.push(format!("{}:{}: {}", path.display(), n + 1, line.trim()));
+                }
+            }
+        }
+    }
+    assert!(offenders.is_empty(), "{}", offenders.join("\n"));
 }

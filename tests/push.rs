@@ -139,7 +139,6 @@ fn a_push_in_a_scenario_lands_at_its_step() {
     for step in 0..30 {
         if step == 12 {
             by_hand
-                .env_mut()
                 .apply_edit(&edits("push:torso=0,-60,0@3")[0])
                 .unwrap();
         }

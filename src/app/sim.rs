@@ -563,7 +563,7 @@ impl Sim {
                 .session
                 .lanes()
                 .first()
-                .is_some_and(|l| l.env().steps() == fork.at)
+                .is_some_and(|l| fork.due(l.core()))
         {
             let edits = fork.edits.clone();
             self.forked_episode = Some(self.session.episodes_started());

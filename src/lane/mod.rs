@@ -333,7 +333,29 @@ pub struct Fork {
     pub edits: Vec<Edit>,
 }
 
+/// A fork whose step never came: the episode ended first. The one such error of every
+/// front-end (rollout, record, video, live).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("--fork-at {at} is beyond the episode, which ended after {steps} steps")]
+pub struct ForkBeyondEpisode {
+    pub at: usize,
+    pub steps: usize,
+}
+
 impl Fork {
+    /// The one fork rule: a fork branches off `lane` while its episode runs, before step `at`.
+    pub fn due(&self, lane: &Lane) -> bool {
+        !lane.is_done() && lane.steps() == self.at
+    }
+
+    /// What to say when `lane`'s episode ended without the fork coming due.
+    pub fn beyond(&self, lane: &Lane) -> ForkBeyondEpisode {
+        ForkBeyondEpisode {
+            at: self.at,
+            steps: lane.steps(),
+        }
+    }
+
     /// Checked once, before any step, for every front-end: every edit names a joint (or a
     /// push a body) of this world's model, and step `at` lies inside its step limit.
     pub fn validate(&self, world: &GaitConfig) -> Result<(), LaneError> {
@@ -485,11 +507,55 @@ impl Lane {
         })
     }
 
+    /// A damage edit (a joint's scale, a failure, a heal, a push), from the next step on; it is
+    /// logged as an event with that step.
+    pub fn apply_edit(&mut self, edit: &Edit) -> Result<(), LaneError> {
+        Ok(self.env.apply_edit(edit)?)
+    }
+
+    /// A hand-made change to one actuator (the panel's and page's controls), from the next step.
+    pub fn apply_override(
+        &mut self,
+        actuator: usize,
+        change: crate::damage::JointOverride,
+    ) -> Result<(), LaneError> {
+        Ok(self.env.apply_override(actuator, change)?)
+    }
+
+    /// Whether fatigue reaching τ triggers a joint (off in the live viewer's manual condition);
+    /// kept across resets.
+    pub fn set_fatigue_triggers(&mut self, on: bool) {
+        self.env.set_fatigue_triggers(on);
+    }
+
+    /// Steps the episode on while `go_on` (asked before each step) says so, to its end at most,
+    /// each step's record to `each`: the one run-to-end loop (rollout, probe, onset, explain).
+    pub fn run_while<E: From<LaneError>>(
+        &mut self,
+        actor: &Actor,
+        mode: ActionMode,
+        mut go_on: impl FnMut(&Lane) -> bool,
+        mut each: impl FnMut(&StepRecord) -> Result<(), E>,
+    ) -> Result<(), E> {
+        while !self.is_done() && go_on(self) {
+            let record = self.advance(actor, mode)?;
+            each(record)?;
+        }
+        Ok(())
+    }
+
+    /// [`Self::run_while`] to the episode's end.
+    pub fn run_to_end<E: From<LaneError>>(
+        &mut self,
+        actor: &Actor,
+        mode: ActionMode,
+        each: impl FnMut(&StepRecord) -> Result<(), E>,
+    ) -> Result<(), E> {
+        self.run_while(actor, mode, |_| true, each)
+    }
+
     pub fn env(&self) -> &AntEnv {
         &self.env
-    }
-    pub fn env_mut(&mut self) -> &mut AntEnv {
-        &mut self.env
     }
     pub fn obs(&self) -> &Observation {
         &self.run.obs

@@ -53,31 +53,42 @@ pub fn collect(
             requested.env.max_episode_steps = max_steps;
             let episode_seed = seed + (k * Condition::ALL.len() + condition.index()) as u64;
             let mut lane = Lane::new(actor, &requested, episode_seed)?;
-            while !lane.is_done() {
-                let window = if window_every > 0 && lane.steps() % window_every == 0 {
-                    lane.window().as_slice().to_vec()
-                } else {
-                    Vec::new()
-                };
-                lane.advance(actor, ActionMode::Deterministic)?;
-                let (Some(record), damage) = (lane.last(), lane.env().damage()) else {
-                    break;
-                };
-                steps.push(ProbeStep {
-                    episode,
-                    t: record.step(),
-                    condition,
-                    z: record.z.clone().unwrap_or_default(),
-                    // The observation the actor decided from, before the step.
-                    obs: record.obs_before.to_vec(),
-                    damaged: record.damaged(),
-                    fatigue: record.fatigue,
-                    first_trigger: damage.first_trigger_steps().iter().flatten().min().copied(),
-                    joint_triggers: damage.first_trigger_steps(),
-                    progress: record.outcome.reward.progress,
-                    window,
-                });
-            }
+            // The window a step's decision read (taken before it), and each joint's first
+            // trigger so far (from the steps' own events).
+            let window = std::cell::RefCell::new(Vec::new());
+            let mut joint_triggers = [None; crate::damage::N_ACTUATORS];
+            lane.run_while(
+                actor,
+                ActionMode::Deterministic,
+                |lane| {
+                    if window_every > 0 && lane.steps() % window_every == 0 {
+                        *window.borrow_mut() = lane.window().as_slice().to_vec();
+                    }
+                    true
+                },
+                |record| {
+                    for e in &record.events {
+                        if e.kind == crate::damage::DamageEventKind::Trigger {
+                            joint_triggers[e.actuator].get_or_insert(e.step);
+                        }
+                    }
+                    steps.push(ProbeStep {
+                        episode,
+                        t: record.step(),
+                        condition,
+                        z: record.z.clone().unwrap_or_default(),
+                        // The observation the actor decided from, before the step.
+                        obs: record.obs_before.to_vec(),
+                        damaged: record.damaged(),
+                        fatigue: record.fatigue,
+                        first_trigger: joint_triggers.iter().flatten().min().copied(),
+                        joint_triggers,
+                        progress: record.outcome.reward.progress,
+                        window: window.take(),
+                    });
+                    Ok::<(), ProbeError>(())
+                },
+            )?;
             episode += 1;
             progress.inc(1);
         }

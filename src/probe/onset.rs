@@ -71,10 +71,15 @@ pub fn onset_attribution(
             let mut lane = Lane::new(actor, &requested, episode_seed)?;
             // The window each step's decision read; explained once the trigger is known.
             let mut windows = Vec::new();
-            while !lane.is_done() {
-                windows.push(lane.window().as_slice().to_vec());
-                lane.advance(actor, ActionMode::Deterministic)?;
-            }
+            lane.run_while(
+                actor,
+                ActionMode::Deterministic,
+                |lane| {
+                    windows.push(lane.window().as_slice().to_vec());
+                    true
+                },
+                |_| Ok::<(), ProbeError>(()),
+            )?;
             let firsts = lane.env().damage().first_trigger_steps();
             let Some((joint, first)) = firsts
                 .iter()

@@ -154,6 +154,10 @@ impl Lane {
     pub fn env(&self) -> &AntEnv {
         self.core.env()
     }
+    /// The stepping core's lane, to read (only the session changes it).
+    pub fn core(&self) -> &crate::lane::Lane {
+        &self.core
+    }
     /// The record of this episode's latest step (none right after a reset).
     pub fn last(&self) -> Option<&StepRecord> {
         self.core.last()
@@ -464,12 +468,11 @@ impl Session {
         let Some(main) = self.lanes.first() else {
             return Ok(());
         };
-        let state = main.snapshot();
         let main_log = main.log.clone();
         let described = format!(
             "fork of {} at step {}: {}",
             main.root,
-            state.steps(),
+            main.core.steps(),
             edits
                 .iter()
                 .map(ToString::to_string)
@@ -482,13 +485,8 @@ impl Session {
             world_offset: side_by_side_offset(self.lanes.len()),
         };
         let mut lane = Lane::new(spec, &self.rec, &self.config, self.seed)?;
-        lane.core
-            .env_mut()
-            .set_fatigue_triggers(self.fatigue_triggers);
-        lane.core.restore(&state.state)?;
-        for edit in edits {
-            lane.core.env_mut().apply_edit(edit)?;
-        }
+        // The stepping core's fork: the main lane's exact state, the edits applied.
+        lane.core = main.core.fork(edits)?;
         lane.probe_before = lane.probe_now().copied();
         lane.log = main_log;
         lane.fork_of = Some(described.clone());
@@ -605,9 +603,7 @@ impl Session {
         let episode = self.episodes_started;
         self.episodes_started += 1;
         for lane in &mut self.lanes {
-            lane.core
-                .env_mut()
-                .set_fatigue_triggers(self.fatigue_triggers);
+            lane.core.set_fatigue_triggers(self.fatigue_triggers);
             lane.core.reset(seed);
             lane.log.clear();
             if let Some(start) = &self.start {
@@ -709,7 +705,7 @@ impl Session {
         change: JointOverride,
     ) -> Result<(), RecordError> {
         for lane in &mut self.lanes {
-            lane.core.env_mut().apply_override(actuator, change)?;
+            lane.core.apply_override(actuator, change)?;
         }
         Ok(())
     }
@@ -722,7 +718,7 @@ impl Session {
             lane.core.env().check_edit(&edit)?;
         }
         for lane in self.lanes.iter_mut().filter(|l| !l.core.is_done()) {
-            lane.core.env_mut().apply_edit(&edit)?;
+            lane.core.apply_edit(&edit)?;
         }
         Ok(())
     }
@@ -842,11 +838,11 @@ pub enum RecordError {
         path: std::path::PathBuf,
         reason: String,
     },
-    #[error("--fork-at {at} is beyond episode {episode}, which ended after {steps} steps")]
+    #[error("episode {episode}: {source}")]
     ForkBeyondEpisode {
-        at: usize,
         episode: usize,
-        steps: usize,
+        #[source]
+        source: crate::lane::ForkBeyondEpisode,
     },
 }
 
@@ -969,8 +965,7 @@ pub fn record(
             }
             if let Some(fork) = &opts.fork
                 && !forked
-                && session.lanes()[0].env().steps() == fork.at
-                && !session.lanes()[0].is_done()
+                && fork.due(session.lanes()[0].core())
             {
                 session.fork(&fork.edits)?;
                 forked = true;
@@ -981,9 +976,8 @@ pub fn record(
             && !forked
         {
             return Err(RecordError::ForkBeyondEpisode {
-                at: fork.at,
-                episode: k,
-                steps: session.lanes()[0].env().steps(),
+                episode: k + 1,
+                source: fork.beyond(session.lanes()[0].core()),
             });
         }
         // Episodes counted from 1, as every message names them.
