@@ -308,8 +308,12 @@ fn a_vanished_viewer_still_yields_the_report_and_the_saved_file() {
                 TelemetryError::FlushTimeout(_) => {
                     assert!(source.to_string().contains("viewer"), "{source}")
                 }
-                TelemetryError::Flush(reason) => {
-                    assert!(reason.contains(&format!("127.0.0.1:{port}")), "{source}")
+                TelemetryError::Flush(cause) => {
+                    // The sink's own error, kept as the source.
+                    assert!(
+                        cause.to_string().contains(&format!("127.0.0.1:{port}")),
+                        "{cause}"
+                    )
                 }
                 other => panic!("expected a failed flush, got {other:?}"),
             }

@@ -112,11 +112,14 @@ pub enum EvalError {
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
     Env(#[from] EnvError),
-    #[error("policy inference failed for {model}: {source}")]
+    #[error("{model}")]
     Policy {
         model: String,
-        source: candle_core::Error,
+        #[source]
+        source: crate::policy::PolicyError,
     },
+    #[error(transparent)]
+    Lane(#[from] crate::lane::LaneError),
     #[error(transparent)]
     Plot(#[from] PlotError),
     #[error("cannot write {path}: {reason}")]
@@ -417,7 +420,7 @@ fn lane_error(label: &str, e: crate::lane::LaneError) -> EvalError {
             source,
         },
         crate::lane::LaneError::Env(e) => EvalError::Env(e),
-        other => EvalError::Options(other.to_string()),
+        other => EvalError::Lane(other),
     }
 }
 

@@ -29,8 +29,8 @@ pub use saved::{
 pub enum LaneError {
     #[error(transparent)]
     Env(#[from] EnvError),
-    #[error("policy inference failed: {0}")]
-    Policy(#[from] candle_core::Error),
+    #[error(transparent)]
+    Policy(#[from] crate::policy::PolicyError),
     #[error("--fork-at {at} is beyond the episodes' step limit ({limit})")]
     ForkBeyondLimit { at: usize, limit: usize },
     #[error("the scripted actions end after {len} steps; step {step} has none")]

@@ -277,6 +277,30 @@ pub struct PolicyInput {
     pub obs: Tensor,
 }
 
+/// Why a policy could not decide: input that does not fit its network, or candle failing.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    #[error("observation batch of {len} values is not a multiple of {obs_dim}")]
+    ObservationBatch { len: usize, obs_dim: usize },
+    #[error("observation value {index} is {value}; observations must be finite")]
+    NonFinite { index: usize, value: f32 },
+    #[error("window has {len} values, expected {batch} × {context_len} × {entry_dim}")]
+    WindowSize {
+        len: usize,
+        batch: usize,
+        context_len: usize,
+        entry_dim: usize,
+    },
+    #[error("encoder {0} needs a context window")]
+    NoWindow(EncoderKind),
+    #[error("sampled actions need {batch} × {act_dim} noise values")]
+    Noise { batch: usize, act_dim: usize },
+    #[error("the policy returned no decision")]
+    NoDecision,
+    #[error("policy inference failed")]
+    Candle(#[from] candle_core::Error),
+}
+
 impl PolicyInput {
     /// Builds a batch from flat host buffers: `obs` is B × obs_dim, `window` B × k × entry.
     pub fn from_slices(
@@ -418,28 +442,33 @@ impl Actor {
         window: Option<&[f32]>,
         mode: ActionMode,
         noise: Option<&[f32]>,
-    ) -> Result<Vec<Decision>> {
+    ) -> std::result::Result<Vec<Decision>, PolicyError> {
         if obs.is_empty() || !obs.len().is_multiple_of(net.obs_dim) {
-            candle_core::bail!(
-                "observation batch of {} values is not a multiple of {}",
-                obs.len(),
-                net.obs_dim
-            );
+            return Err(PolicyError::ObservationBatch {
+                len: obs.len(),
+                obs_dim: net.obs_dim,
+            });
         }
-        if let Some((i, v)) = obs.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-            candle_core::bail!("observation value {i} is {v}; observations must be finite");
+        if let Some((index, &value)) = obs.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+            return Err(PolicyError::NonFinite { index, value });
         }
         let b = obs.len() / net.obs_dim;
-        if let Some(w) = window
-            && w.len() != b * net.context_len * net.entry_dim()
-        {
-            candle_core::bail!(
-                "window has {} values, expected {b} × {} × {}",
-                w.len(),
-                net.context_len,
-                net.entry_dim()
-            );
+        match window {
+            Some(w) if w.len() != b * net.context_len * net.entry_dim() => {
+                return Err(PolicyError::WindowSize {
+                    len: w.len(),
+                    batch: b,
+                    context_len: net.context_len,
+                    entry_dim: net.entry_dim(),
+                });
+            }
+            None if net.encoder.uses_window() => return Err(PolicyError::NoWindow(net.encoder)),
+            _ => {}
         }
+        let noise_error = PolicyError::Noise {
+            batch: b,
+            act_dim: net.act_dim,
+        };
         // Rows go through in blocks of 2 to DECIDE_BLOCK rows: candle's CPU matmul rounds a
         // product differently for a single row, and again past 64 rows (the window-MLP's
         // 592-wide input: measured on the bundled encoders, tests/batch_invariance.rs), and a
@@ -449,7 +478,7 @@ impl Actor {
             if let Some(e) = noise
                 && e.len() != b * net.act_dim
             {
-                candle_core::bail!("sampled actions need {b} × {} noise values", net.act_dim);
+                return Err(noise_error);
             }
             let mut out = Vec::with_capacity(b);
             for start in (0..b).step_by(DECIDE_BLOCK) {
@@ -489,9 +518,7 @@ impl Actor {
                 )?
                 .0
             }
-            (ActionMode::Sampled, _) => {
-                candle_core::bail!("sampled actions need {b} × {} noise values", net.act_dim)
-            }
+            (ActionMode::Sampled, _) => return Err(noise_error),
         };
         let mut actions = action.to_vec2::<f32>()?;
         let mut zs: Vec<Option<Vec<f32>>> = match &out.z {
@@ -713,7 +740,7 @@ impl Policy {
         window: Option<&[f32]>,
         mode: ActionMode,
         noise: Option<&[f32]>,
-    ) -> Result<Vec<Decision>> {
+    ) -> std::result::Result<Vec<Decision>, PolicyError> {
         self.actor
             .decide(&self.meta.net, &self.device, obs, window, mode, noise)
     }
@@ -727,7 +754,7 @@ impl Policy {
         window: &crate::window::ContextWindow,
         mode: ActionMode,
         noise: Option<&[f32]>,
-    ) -> Result<Decision> {
+    ) -> std::result::Result<Decision, PolicyError> {
         let mut input = Vec::with_capacity(self.meta.net.obs_dim);
         self.meta.net.privileged.input(obs, scales, &mut input);
         let obs = input;
@@ -739,6 +766,6 @@ impl Policy {
             .then(|| window.as_slice());
         self.act_batch(&obs, window, mode, noise)?
             .pop()
-            .ok_or_else(|| candle_core::Error::Msg("the policy returned no decision".into()))
+            .ok_or(PolicyError::NoDecision)
     }
 }

@@ -29,6 +29,22 @@ pub struct ProbeStep {
     pub window: Vec<f32>,
 }
 
+/// Probe episode `k` under `condition`: the world asked for (the actor's own world, see
+/// `lane::Actor::world`, under this condition and step limit) and its seed — `seed, seed + 1,
+/// …`, conditions interleaved. `collect` and `onset` draw the same episodes through it.
+pub fn probe_episode(
+    seed: u64,
+    k: usize,
+    condition: Condition,
+    max_steps: usize,
+) -> (GaitConfig, u64) {
+    let mut requested = GaitConfig::default();
+    requested.damage.condition = ConditionChoice::Fixed(condition);
+    requested.env.max_episode_steps = max_steps;
+    let episode_seed = seed + (k * Condition::ALL.len() + condition.index()) as u64;
+    (requested, episode_seed)
+}
+
 /// Runs `episodes_per_condition` episodes under each condition (deterministic actions) and
 /// records every step. Episodes get seeds `seed, seed + 1, …`, conditions interleaved. The
 /// window (592 numbers for the Ant) is kept on every `window_every`-th step (0: never).
@@ -47,11 +63,7 @@ pub fn collect(
     );
     for k in 0..episodes_per_condition {
         for condition in Condition::ALL {
-            // The actor's own world (lane::Actor::world) under this condition and limit.
-            let mut requested = GaitConfig::default();
-            requested.damage.condition = ConditionChoice::Fixed(condition);
-            requested.env.max_episode_steps = max_steps;
-            let episode_seed = seed + (k * Condition::ALL.len() + condition.index()) as u64;
+            let (requested, episode_seed) = probe_episode(seed, k, condition, max_steps);
             let mut lane = Lane::new(actor, &requested, episode_seed)?;
             // The window a step's decision read (taken before it), and each joint's first
             // trigger so far (from the steps' own events).

@@ -56,4 +56,6 @@ pub enum ProbeError {
     Read { path: PathBuf, reason: String },
     #[error("{0}")]
     Options(String),
+    #[error("explaining z")]
+    Explain(#[from] crate::explain::ExplainError),
 }

@@ -8,8 +8,7 @@ use std::ops::RangeInclusive;
 use std::path::Path;
 
 use super::ProbeError;
-use crate::config::GaitConfig;
-use crate::damage::{Condition, ConditionChoice, N_ACTUATORS};
+use crate::damage::{Condition, N_ACTUATORS};
 use crate::lane::{Actor, Lane};
 use crate::policy::ActionMode;
 
@@ -64,10 +63,8 @@ pub fn onset_attribution(
     let mut episodes = 0;
     for k in 0..episodes_per_condition {
         for condition in [Condition::Mild, Condition::Severe] {
-            let mut requested = GaitConfig::default();
-            requested.damage.condition = ConditionChoice::Fixed(condition);
-            requested.env.max_episode_steps = max_steps;
-            let episode_seed = seed + (k * Condition::ALL.len() + condition.index()) as u64;
+            let (requested, episode_seed) =
+                super::collect::probe_episode(seed, k, condition, max_steps);
             let mut lane = Lane::new(actor, &requested, episode_seed)?;
             // The window each step's decision read; explained once the trigger is known.
             let mut windows = Vec::new();
@@ -101,8 +98,7 @@ pub fn onset_attribution(
                 else {
                     continue;
                 };
-                let a = crate::explain::z_shift_attribution(policy, window, POINTS)
-                    .map_err(|e| ProbeError::Options(e.to_string()))?;
+                let a = crate::explain::z_shift_attribution(policy, window, POINTS)?;
                 // Per feature, summed over the window's slots.
                 let per_feature: Vec<f64> = (0..a.attribution[0].len())
                     .map(|f| a.attribution.iter().map(|slot| slot[f]).sum())

@@ -142,8 +142,10 @@ pub enum TelemetryError {
     Rerun(#[from] rerun::RecordingStreamError),
     #[error("cannot write recording {path}: {reason}")]
     File { path: PathBuf, reason: String },
-    #[error("flushing the recording: {0}")]
-    Flush(String),
+    #[error("flushing the recording")]
+    Flush(#[source] rerun::sink::SinkFlushError),
+    #[error("the blueprint has no activation command")]
+    NoBlueprintActivation,
     #[error("the viewer did not take the last data within {0:?} (was it closed?)")]
     FlushTimeout(std::time::Duration),
     #[error(
@@ -545,9 +547,7 @@ pub fn send_layout_for(
             make_default: true,
         },
     )?;
-    scratch
-        .flush_blocking()
-        .map_err(|e| TelemetryError::Flush(e.to_string()))?;
+    scratch.flush_blocking().map_err(TelemetryError::Flush)?;
     let mut messages = Vec::new();
     let mut activation = None;
     for msg in storage.take() {
@@ -557,17 +557,14 @@ pub fn send_layout_for(
             _ => {} // the scratch recording's own store info
         }
     }
-    let activation = activation
-        .ok_or_else(|| TelemetryError::Flush("the blueprint has no activation".into()))?;
+    let activation = activation.ok_or(TelemetryError::NoBlueprintActivation)?;
     let (props, props_storage) =
         RecordingStreamBuilder::from_store_id(&activation.blueprint_id).memory()?;
     props.set_time_sequence("blueprint", 0);
     for (path, archetype) in &layout.properties {
         props.log(path.as_str(), archetype.as_ref())?;
     }
-    props
-        .flush_blocking()
-        .map_err(|e| TelemetryError::Flush(e.to_string()))?;
+    props.flush_blocking().map_err(TelemetryError::Flush)?;
     messages.extend(
         props_storage
             .take()

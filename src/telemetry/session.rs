@@ -645,7 +645,7 @@ impl Session {
                         lane.core.window().as_slice(),
                         super::ATTRIBUTION_POINTS,
                     )
-                    .map_err(|e| RecordError::Attribution(e.to_string()))?,
+                    .map_err(RecordError::Attribution)?,
                 ),
                 _ => None,
             };
@@ -749,15 +749,13 @@ impl Session {
         match self.rec.flush_with_timeout(timeout) {
             Ok(()) => Ok(()),
             Err(rerun::sink::SinkFlushError::Timeout) => Err(TelemetryError::FlushTimeout(timeout)),
-            Err(e) => Err(TelemetryError::Flush(e.to_string())),
+            Err(e) => Err(TelemetryError::Flush(e)),
         }
     }
 
     /// Blocks until everything logged so far has reached the sinks.
     pub fn flush(&self) -> Result<(), TelemetryError> {
-        self.rec
-            .flush_blocking()
-            .map_err(|e| TelemetryError::Flush(e.to_string()))
+        self.rec.flush_blocking().map_err(TelemetryError::Flush)
     }
 }
 
@@ -828,8 +826,8 @@ pub enum RecordError {
     Probe(#[from] crate::probe::ProbeError),
     #[error("policy inference failed: {0}")]
     Policy(#[from] candle_core::Error),
-    #[error("the attribution view failed: {0}")]
-    Attribution(String),
+    #[error("the attribution view failed")]
+    Attribution(#[source] crate::explain::ExplainError),
 
     #[error(
         "the recording {path} could not be written completely: {reason}; nothing was left under that name"

@@ -141,14 +141,19 @@ impl SacLearner {
             return Ok(fused.act(obs, window, noise));
         }
         let net = &self.model.net;
-        let decision = self.model.actor.decide(
-            net,
-            &self.device,
-            obs,
-            window,
-            crate::policy::ActionMode::Sampled,
-            Some(noise),
-        )?;
+        let decision = self
+            .model
+            .actor
+            .decide(
+                net,
+                &self.device,
+                obs,
+                window,
+                crate::policy::ActionMode::Sampled,
+                Some(noise),
+            )
+            // The training loop's own inputs: a mismatch here is a bug, reported as candle's.
+            .map_err(candle_core::Error::wrap)?;
         Ok(decision
             .into_iter()
             .next()
