@@ -159,7 +159,7 @@ impl BareAnt {
     fn new(config: &GaitConfig) -> Result<Self, EnvError> {
         let model = MjModel::from_xml_string(BUNDLED_ANT_XML).map_err(|e| EnvError::ModelLoad {
             origin: "bundled assets/ant.xml".into(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
         Ok(Self {
             physics: MjData::new(Box::new(model)),

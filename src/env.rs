@@ -46,7 +46,11 @@ pub enum EnvError {
         source: std::io::Error,
     },
     #[error("MuJoCo could not load the model {origin}: {reason}")]
-    ModelLoad { origin: String, reason: String },
+    ModelLoad {
+        origin: String,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("model {origin} is not the Ant-v4 model: {reason}")]
     NotAnAnt { origin: String, reason: String },
     #[error("action has {got} values, the Ant has {expected} actuators")]
@@ -995,7 +999,7 @@ fn load_model(path: Option<&Path>) -> Result<(MjModel, String), EnvError> {
             let model =
                 MjModel::from_xml_string(BUNDLED_ANT_XML).map_err(|e| EnvError::ModelLoad {
                     origin: origin.clone(),
-                    reason: e.to_string(),
+                    reason: e.into(),
                 })?;
             Ok((model, origin))
         }
@@ -1008,7 +1012,7 @@ fn load_model(path: Option<&Path>) -> Result<(MjModel, String), EnvError> {
             let origin = path.display().to_string();
             let model = MjModel::from_xml(path).map_err(|e| EnvError::ModelLoad {
                 origin: origin.clone(),
-                reason: e.to_string(),
+                reason: e.into(),
             })?;
             Ok((model, origin))
         }

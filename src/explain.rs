@@ -22,7 +22,7 @@ pub const DEFAULT_IG_STEPS: usize = 64;
 pub const MAX_IG_STEPS: usize = 8_192;
 
 /// What is explained.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Target {
     /// Each dimension of the encoder's latent z (the window alone decides it).

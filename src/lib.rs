@@ -25,6 +25,11 @@ pub mod train;
 pub mod video;
 pub mod window;
 
+/// The cause an error keeps: the underlying error itself (I/O, JSON, safetensors, MuJoCo,
+/// plotters), or a sentence where there is none, so that `Error::source` walks to it rather
+/// than the cause living on only as text (issue 50).
+pub type Cause = Box<dyn std::error::Error + Send + Sync + 'static>;
+
 pub use config::GaitConfig;
 pub use damage::{Condition, ConditionChoice, DamageEvent, DamageState, JointOverride};
 pub use env::{AntEnv, EnvError, Observation, StepOutcome};

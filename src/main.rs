@@ -64,6 +64,7 @@ fn main() {
         unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
     }
     let cli = Cli::parse();
+    cli::notes::install();
     // SAFETY: no other thread exists yet.
     unsafe { gaitscope::env::keep_mujoco_logs_on_console() };
     if let Err(err) = run(cli) {

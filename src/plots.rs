@@ -12,7 +12,11 @@ pub use plotters::chart::SeriesLabelPosition;
 #[derive(Debug, thiserror::Error)]
 pub enum PlotError {
     #[error("drawing {path}: {reason}")]
-    Draw { path: PathBuf, reason: String },
+    Draw {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("writing {path}: {source}")]
     Io {
         path: PathBuf,
@@ -99,7 +103,7 @@ pub fn render(
     let tmp = path.with_file_name(format!(".{file_name}.tmp.png"));
     let fail = |reason: String| PlotError::Draw {
         path: path.to_owned(),
-        reason,
+        reason: reason.into(),
     };
     {
         let root = BitMapBackend::new(&tmp, size).into_drawing_area();

@@ -196,7 +196,8 @@ pub enum ReplayError {
     Malformed {
         what: &'static str,
         path: PathBuf,
-        reason: String,
+        #[source]
+        reason: crate::Cause,
     },
     #[error(transparent)]
     Env(#[from] EnvError),
@@ -233,7 +234,7 @@ fn read_json<T: serde::de::DeserializeOwned>(
     serde_json::from_str(&text).map_err(|e| ReplayError::Malformed {
         what,
         path: path.to_owned(),
-        reason: format!("{e} (expected {expected})"),
+        reason: format!("{e} (expected {expected})").into(),
     })
 }
 
@@ -281,7 +282,7 @@ pub fn read_actions(path: &Path) -> Result<Vec<Action>, ReplayError> {
     let malformed = |reason: String| ReplayError::Malformed {
         what: WHAT,
         path: path.to_owned(),
-        reason,
+        reason: reason.into(),
     };
     if rows.is_empty() {
         return Err(malformed("no actions (an empty list)".into()));

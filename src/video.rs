@@ -35,7 +35,11 @@ pub enum VideoError {
     #[error("ffmpeg failed: {0}")]
     Encoder(String),
     #[error("cannot write {path}: {reason}")]
-    Write { path: PathBuf, reason: String },
+    Write {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("--width {0} must be a multiple of 4 for two lanes side by side")]
     OddLanes(usize),
     #[error("--out {0} should end in .mp4")]
@@ -49,7 +53,7 @@ pub enum VideoError {
 }
 
 /// How the camera moves.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum CameraMode {
     /// Follows the torso at 5 m, as the viewer's 3-D view does.
     Track,
@@ -279,7 +283,7 @@ impl Encoder {
         // Fail on an unwritable folder here, with the OS's reason, not as a broken pipe later.
         std::fs::File::create(&tmp).map_err(|e| VideoError::Write {
             path: out.to_owned(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
         let child = Command::new("ffmpeg")
             .args([
@@ -355,7 +359,7 @@ impl Encoder {
         }
         std::fs::rename(&self.tmp, &self.out).map_err(|e| VideoError::Write {
             path: self.out.clone(),
-            reason: e.to_string(),
+            reason: e.into(),
         })
     }
 }

@@ -325,3 +325,128 @@ fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
     let err = Actor::load(dir.path()).err().unwrap().to_string();
     assert!(err.contains("obs_dim 29 does not fit"), "{err}");
 }
+
+/// The ablation that asks what knowing the damage is worth: an oracle told every joint is
+/// healthy decides, at every step of a dead-joint episode, exactly as the same network does
+/// from [observation, 1 × 8] (lane by lane and in lockstep); a model without privileged inputs
+/// cannot be told anything; and in eval the told-healthy oracle is its own model whose healthy
+/// episodes are the oracle's own, bit for bit (all scales are 1 there anyway), while its
+/// severe episodes are not.
+#[test]
+fn an_oracle_told_healthy_reads_ones_and_eval_pairs_it_with_the_truth() {
+    use gaitscope::eval::{Case, EvalOptions, evaluate};
+    use gaitscope::policy::OracleView;
+    let world = dead_world(Condition::Severe);
+    let root = tempfile::tempdir().unwrap();
+    let oracle_dir = root.path().join("oracle-s3");
+    save_model(
+        &oracle_dir,
+        NetConfig::ant_oracle(Privileged::Damage),
+        &world,
+    );
+    let baseline_dir = root.path().join("baseline-s3");
+    save_model(&baseline_dir, NetConfig::ant(EncoderKind::None), &world);
+
+    let baseline = gaitscope::policy::Policy::load(&baseline_dir, None).unwrap();
+    let err = baseline
+        .with_oracle_view(OracleView::ToldHealthy)
+        .unwrap_err();
+    assert!(err.to_string().contains("only an oracle"), "{err}");
+
+    let truth = Actor::load(&oracle_dir).unwrap();
+    let told = gaitscope::policy::Policy::load(&oracle_dir, None)
+        .unwrap()
+        .with_oracle_view(OracleView::ToldHealthy)
+        .unwrap();
+    let network = told.clone().with_oracle_view(OracleView::Truth).unwrap();
+    let told = Actor::from_policy(&oracle_dir, told);
+    let (probe_env, seed) = episode_with_deaths(&world);
+    drop(probe_env);
+    let mut lane = Lane::new(&told, &world, seed).unwrap();
+    let mut lockstep = vec![Lane::new(&told, &world, seed).unwrap()];
+    let (mut saw_dead, mut differs) = (false, false);
+    while !lane.is_done() && lane.steps() < 140 {
+        let scales = *lane.env().damage().scale();
+        saw_dead |= scales.contains(&0.0);
+        let decide = |told: &[f64; N_ACTUATORS]| {
+            let mut input: Vec<f32> = lane.obs().iter().map(|&v| v as f32).collect();
+            input.extend(told.iter().map(|&v| v as f32));
+            network
+                .act_batch(&input, None, ActionMode::Deterministic, None)
+                .unwrap()
+                .remove(0)
+                .action
+        };
+        let want = decide(&[1.0; N_ACTUATORS]);
+        differs |= want != decide(&scales);
+        let got = lane
+            .advance(&told, ActionMode::Deterministic)
+            .unwrap()
+            .outcome
+            .commanded_action;
+        gaitscope::lane::advance_lockstep(&told, &mut lockstep, ActionMode::Deterministic).unwrap();
+        let batched = lockstep[0].last().unwrap().outcome.commanded_action;
+        for i in 0..ACT_DIM {
+            assert_eq!(got[i], want[i].clamp(-1.0, 1.0));
+            assert_eq!(batched[i], got[i]);
+        }
+    }
+    assert!(
+        saw_dead && differs,
+        "a death reached the episode and the truth would have differed"
+    );
+    drop(truth);
+
+    let options = |told_healthy: Vec<std::path::PathBuf>| EvalOptions {
+        checkpoints: vec![oracle_dir.clone()],
+        told_healthy,
+        episodes: 4,
+        seed_base: 40,
+        conditions: vec![
+            Case::Condition(Condition::Healthy),
+            Case::Condition(Condition::Severe),
+        ],
+        scenarios: Vec::new(),
+        max_steps: 150,
+        threads: 1,
+    };
+    let err = evaluate(&options(vec![baseline_dir.clone()]))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("--told-healthy") && err.contains("baseline-s3"),
+        "{err}"
+    );
+    let report = evaluate(&options(vec![oracle_dir.clone()])).unwrap();
+    let of = |model: &str, case: Condition| -> Vec<(usize, u64)> {
+        report
+            .episodes
+            .iter()
+            .filter(|e| e.model == model && e.condition == Case::Condition(case))
+            .map(|e| (e.steps, e.episode_return.to_bits()))
+            .collect()
+    };
+    assert_eq!(of("oracle-told-healthy-s3", Condition::Healthy).len(), 4);
+    assert_eq!(
+        of("oracle-told-healthy-s3", Condition::Healthy),
+        of("oracle-s3", Condition::Healthy)
+    );
+    assert_ne!(
+        of("oracle-told-healthy-s3", Condition::Severe),
+        of("oracle-s3", Condition::Severe)
+    );
+    assert!(
+        report
+            .episodes
+            .iter()
+            .any(|e| e.group == "oracle-told-healthy")
+    );
+    assert_eq!(
+        gaitscope::eval::told_healthy_label("oracle-s12"),
+        "oracle-told-healthy-s12"
+    );
+    assert_eq!(
+        gaitscope::eval::told_healthy_label("oracle"),
+        "oracle-told-healthy"
+    );
+}

@@ -31,6 +31,7 @@ fn save_model(dir: &Path, encoder: EncoderKind, seed: u64) {
 fn options(checkpoints: Vec<std::path::PathBuf>, threads: usize) -> EvalOptions {
     EvalOptions {
         checkpoints,
+        told_healthy: Vec::new(),
         episodes: 6,
         seed_base: 77,
         conditions: vec![Condition::Healthy.into(), Condition::Severe.into()],

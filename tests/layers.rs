@@ -160,3 +160,45 @@ fn no_back_door_into_a_lane() {
     }
     assert!(offenders.is_empty(), "{}", offenders.join("\n"));
 }
+
+/// The command line's types and printing stay at the edge: no library file derives clap's
+/// traits (the CLI mirrors the library's enums in src/cli/values.rs) or prints with
+/// `println!`/`eprintln!` (the library returns what it has, reports progress through bars, and
+/// notes through the `log` facade, which the binary prints). Tests beside the code may print.
+#[test]
+fn the_library_neither_parses_flags_nor_prints() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut offenders = Vec::new();
+    let mut checked = 0;
+    let mut stack = vec![src.clone()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path == src.join("cli") || path == src.join("main.rs") {
+                continue;
+            }
+            if path.is_dir() {
+                stack.push(path);
+                continue;
+            }
+            if path.extension().is_none_or(|e| e != "rs") {
+                continue;
+            }
+            checked += 1;
+            let text = std::fs::read_to_string(&path).unwrap();
+            // Code before the file's test module, if any.
+            let code = text.split("#[cfg(test)]").next().unwrap_or("");
+            for (n, line) in code.lines().enumerate() {
+                let line_code = line.split("//").next().unwrap_or("");
+                if line_code.contains("clap::")
+                    || line_code.contains("println!(")
+                    || line_code.contains("eprintln!(")
+                {
+                    offenders.push(format!("{}:{}: {}", path.display(), n + 1, line.trim()));
+                }
+            }
+        }
+    }
+    assert!(checked > 40, "the library's files were read ({checked})");
+    assert!(offenders.is_empty(), "{}", offenders.join("\n"));
+}

@@ -186,6 +186,7 @@ fn a_checkpoint_runs_in_its_own_world_under_every_front_end() {
     // eval: the episode's length, return and trigger steps.
     let report = gaitscope::eval::evaluate(&gaitscope::eval::EvalOptions {
         checkpoints: vec![dir.clone()],
+        told_healthy: Vec::new(),
         episodes: 1,
         seed_base: SEED,
         conditions: vec![gaitscope::eval::Case::Condition(Condition::Severe)],

@@ -360,6 +360,7 @@ fn eval_checks_its_scenarios_before_any_episode() {
     ] {
         let opts = EvalOptions {
             checkpoints: vec![lstm()],
+            told_healthy: Vec::new(),
             episodes: 1,
             seed_base: 0,
             conditions: cases(&[], &scenarios),

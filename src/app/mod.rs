@@ -194,9 +194,17 @@ pub enum LiveError {
     #[error("the episode is over: rewind or reset before forking")]
     ForkAfterEnd,
     #[error("cannot write scenario {path}: {reason}")]
-    SaveScenario { path: PathBuf, reason: String },
+    SaveScenario {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("cannot write the saved state {path}: {reason}")]
-    SaveState { path: PathBuf, reason: String },
+    SaveState {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("the simulation thread stopped unexpectedly")]
     SimThreadPanicked,
     #[error("starting the simulation thread: {0}")]

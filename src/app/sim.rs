@@ -746,7 +746,7 @@ impl Sim {
         crate::policy::checkpoint::write_atomic(path, state.to_json().as_bytes()).map_err(|e| {
             LiveError::SaveState {
                 path: path.to_owned(),
-                reason: e.to_string(),
+                reason: e.into(),
             }
         })?;
         self.message = Some(format!(
@@ -769,12 +769,12 @@ impl Sim {
         };
         let text = serde_json::to_string_pretty(&value).map_err(|e| LiveError::SaveScenario {
             path: path.to_owned(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
         crate::policy::checkpoint::write_atomic(path, format!("{text}\n").as_bytes()).map_err(
             |e| LiveError::SaveScenario {
                 path: path.to_owned(),
-                reason: e.to_string(),
+                reason: e.into(),
             },
         )?;
         self.message = Some(format!("saved the overrides to {}", path.display()));

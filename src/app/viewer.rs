@@ -26,7 +26,11 @@ pub enum ViewerError {
         expected: String,
     },
     #[error("cannot run the Rerun viewer at {path}: {reason}")]
-    NotRunnable { path: PathBuf, reason: String },
+    NotRunnable {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error(
         "no display: {what} needs a window (DISPLAY and WAYLAND_DISPLAY are unset). {hint}",
         hint = headless_hint(what)
@@ -40,9 +44,17 @@ pub enum ViewerError {
         "no Rerun viewer is listening at {url} ({reason}); start one there (`rerun`, or \
          `make viewer` then `.deps/rerun/rerun`), or leave out --connect to spawn one"
     )]
-    Unreachable { url: String, reason: String },
+    Unreachable {
+        url: String,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("{path} is not a Rerun recording: {reason}")]
-    NotARecording { path: PathBuf, reason: String },
+    NotARecording {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
 }
 
 fn how_to_get() -> String {
@@ -79,7 +91,7 @@ pub fn check_viewer(path: &Path) -> Result<(), ViewerError> {
             .output()
             .map_err(|e| ViewerError::NotRunnable {
                 path: path.to_path_buf(),
-                reason: e.to_string(),
+                reason: e.into(),
             })?;
     let text = String::from_utf8_lossy(&output.stdout);
     let found = parse_viewer_version(&text).ok_or_else(|| ViewerError::NotRunnable {
@@ -88,7 +100,8 @@ pub fn check_viewer(path: &Path) -> Result<(), ViewerError> {
             "`--version` printed {:?}, not `rerun-cli X.Y.Z …` (stderr: {})",
             text.trim(),
             String::from_utf8_lossy(&output.stderr).trim()
-        ),
+        )
+        .into(),
     })?;
     if !versions_compatible(found, sdk_triple()) {
         return Err(ViewerError::VersionMismatch {
@@ -248,7 +261,7 @@ pub fn check_reachable(url: &str) -> Result<(), ViewerError> {
     use std::net::ToSocketAddrs;
     let err = |reason: String| ViewerError::Unreachable {
         url: url.to_string(),
-        reason,
+        reason: reason.into(),
     };
     let rest = url.split_once("://").map_or(url, |(_, rest)| rest);
     let authority = rest.split('/').next().unwrap_or(rest);
@@ -272,7 +285,7 @@ pub fn check_recording(path: &Path) -> Result<(), ViewerError> {
     use std::io::Read;
     let err = |reason: String| ViewerError::NotARecording {
         path: path.to_path_buf(),
-        reason,
+        reason: reason.into(),
     };
     if !path.exists() {
         return Err(ViewerError::RecordingNotFound(path.to_path_buf()));
@@ -300,12 +313,12 @@ pub fn view_recording(viewer: &Path, recording: &Path) -> Result<(), ViewerError
         .status()
         .map_err(|e| ViewerError::NotRunnable {
             path: viewer.to_path_buf(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
     if !status.success() {
         return Err(ViewerError::NotRunnable {
             path: viewer.to_path_buf(),
-            reason: format!("it exited with {status}"),
+            reason: format!("it exited with {status}").into(),
         });
     }
     Ok(())

@@ -123,7 +123,7 @@ impl WebOptions {
             TcpListener::bind(addr).map_err(|e| WebError::Bind {
                 what,
                 addr,
-                reason: e.to_string(),
+                reason: e.into(),
             })?;
         }
         Ok(())
@@ -147,7 +147,8 @@ pub enum WebError {
     Bind {
         what: &'static str,
         addr: SocketAddr,
-        reason: String,
+        #[source]
+        reason: crate::Cause,
     },
     #[error("port {port} is given twice: the control page, web viewer and gRPC need one each")]
     SamePort { port: u16 },
@@ -181,7 +182,7 @@ impl Front {
             let bind_error = |e: std::io::Error| WebError::Bind {
                 what,
                 addr,
-                reason: e.to_string(),
+                reason: e.into(),
             };
             let listener = TcpListener::bind(addr).map_err(bind_error)?;
             let backend = free_loopback_port().map_err(bind_error)?;
@@ -238,7 +239,7 @@ impl WebServer {
         let control = tiny_http::Server::http(addr).map_err(|e| WebError::Bind {
             what: "control page",
             addr,
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
         Ok(Self {
             options,

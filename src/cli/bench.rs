@@ -4,10 +4,9 @@ use anyhow::{Result, bail};
 use clap::Subcommand;
 use std::path::PathBuf;
 
+use super::values::{EncoderArg, UpdateArg};
 use gaitscope::Condition;
 use gaitscope::bench::bench_env;
-use gaitscope::policy::EncoderKind;
-use gaitscope::train::sac::UpdatePath;
 
 use super::EnvArgs;
 
@@ -51,11 +50,11 @@ pub(crate) enum BenchCommand {
         /// Learning steps to time per encoder (after a 1,000-step random warm-up).
         #[arg(long, default_value_t = 1_000)]
         steps: u64,
-        #[arg(long, value_enum, num_args = 1.., default_values_t = [EncoderKind::None, EncoderKind::Lstm, EncoderKind::MlpWindow])]
-        encoders: Vec<EncoderKind>,
+        #[arg(long, value_enum, num_args = 1.., default_values_t = [EncoderArg::None, EncoderArg::Lstm, EncoderArg::MlpWindow])]
+        encoders: Vec<EncoderArg>,
         /// The update to time: fused (what `train` runs) or reference (candle's autograd).
-        #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
-        update: UpdatePath,
+        #[arg(long, value_enum, default_value_t = UpdateArg::Fused)]
+        update: UpdateArg,
         /// Threads per fused update (1: per-core figures, comparable with the peers).
         #[arg(long, default_value_t = 1)]
         threads: usize,
@@ -117,6 +116,7 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
             let opts = gaitscope::eval::EvalOptions {
                 checkpoints: vec![checkpoint],
+                told_healthy: Vec::new(),
                 episodes,
                 seed_base: gaitscope::eval::EVAL_SEED_BASE,
                 conditions: Condition::ALL.map(Into::into).to_vec(),
@@ -149,7 +149,13 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
             }
             let scratch =
                 std::env::temp_dir().join(format!("gaitscope-bench-{}", std::process::id()));
-            let rows = gaitscope::bench::bench_train(&encoders, steps, update, threads, &scratch)?;
+            let rows = gaitscope::bench::bench_train(
+                &encoders.into_iter().map(Into::into).collect::<Vec<_>>(),
+                steps,
+                update.into(),
+                threads,
+                &scratch,
+            )?;
             let _ = std::fs::remove_dir_all(&scratch);
             if json {
                 for r in &rows {

@@ -32,6 +32,11 @@ pub(crate) struct EvalArgs {
     /// First evaluation seed; episode i uses seed + i for every model.
     #[arg(long, default_value_t = gaitscope::eval::EVAL_SEED_BASE)]
     seed: u64,
+    /// An oracle checkpoint to evaluate again told every joint is healthy, whatever the damage:
+    /// what knowing the damage is worth to that network (labelled MODEL-told-healthy-sN; give
+    /// it with --checkpoint too to pair the two).
+    #[arg(long, value_name = "DIR")]
+    told_healthy: Vec<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -48,6 +53,7 @@ pub(crate) fn eval_command(args: EvalArgs) -> Result<()> {
     let cases = gaitscope::eval::cases(&args.conditions, &scenarios);
     let opts = gaitscope::eval::EvalOptions {
         checkpoints: args.checkpoints,
+        told_healthy: args.told_healthy,
         episodes: args.episodes,
         seed_base: args.seed,
         conditions: cases,

@@ -6,6 +6,8 @@ use serde_json::json;
 use std::path::PathBuf;
 
 use gaitscope::explain::{Target, explain_step};
+
+use super::values::TargetArg;
 use gaitscope::{Condition, ConditionChoice};
 
 use super::EnvArgs;
@@ -19,8 +21,8 @@ pub(crate) struct ExplainArgs {
     #[arg(long)]
     step: usize,
     /// z (each latent dimension; encoder models) or action (each action dimension).
-    #[arg(long, value_enum, default_value_t = Target::Z)]
-    target: Target,
+    #[arg(long, value_enum, default_value_t = TargetArg::Z)]
+    target: TargetArg,
     /// Damage condition; without it the episode draws one from its seed.
     #[arg(long, value_name = "healthy|mild|severe")]
     condition: Option<Condition>,
@@ -51,7 +53,7 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
         &requested,
         args.seed,
         args.step,
-        args.target,
+        Target::from(args.target),
         args.ig_steps,
     )?;
     let (a, groups) = (&explained.attribution, &explained.groups);
@@ -90,7 +92,7 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
     }
     println!(
         "{} at step {} (seed {}, {} interpolation points): {} output dims, completeness error at most {:.2e}",
-        match args.target {
+        match Target::from(args.target) {
             Target::Z => "z",
             Target::Action => "action",
         },
@@ -119,7 +121,7 @@ pub(crate) fn explain_command(args: ExplainArgs) -> Result<()> {
             .damage_onset
             .map_or(String::new(), |s| format!(" (damage since step {s})"))
     );
-    let unit = match args.target {
+    let unit = match Target::from(args.target) {
         Target::Z => "in units of z, summed over its dims",
         Target::Action => "in units of the action command (−1 … 1), summed over its dims",
     };

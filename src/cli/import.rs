@@ -4,7 +4,9 @@ use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
 
-use gaitscope::policy::sb3::{self, ImportEncoder};
+use gaitscope::policy::sb3;
+
+use super::values::ImportEncoderArg;
 
 #[derive(Args)]
 pub(crate) struct ImportSb3Args {
@@ -14,12 +16,12 @@ pub(crate) struct ImportSb3Args {
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
     /// The encoder: auto picks none for a 29-d observation, lstm for the 621-d folded window.
-    #[arg(long, value_enum, default_value_t = ImportEncoder::Auto)]
-    encoder: ImportEncoder,
+    #[arg(long, value_enum, default_value_t = ImportEncoderArg::Auto)]
+    encoder: ImportEncoderArg,
 }
 
 pub(crate) fn import_sb3_command(args: ImportSb3Args) -> Result<()> {
-    let summary = sb3::import_sb3(&args.model, &args.out, args.encoder)?;
+    let summary = sb3::import_sb3(&args.model, &args.out, args.encoder.into())?;
     let net = &summary.net;
     println!(
         "imported {} (Stable-Baselines3 {}, {} steps) → {}",

@@ -5,10 +5,12 @@ pub mod eval;
 pub mod explain;
 pub mod import;
 pub mod live;
+pub(crate) mod notes;
 pub mod probe;
 pub mod record;
 pub mod rollout;
 pub mod train;
+mod values;
 pub mod video;
 
 use anyhow::Result;

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use gaitscope::rollout::BuiltinPolicy;
+use super::values::BuiltinArg;
 use gaitscope::{Condition, ConditionChoice};
 
 use super::{EnvArgs, fork_option};
@@ -19,8 +19,8 @@ pub(crate) struct RecordArgs {
     /// A second checkpoint, side by side under identical damage and seeds.
     #[arg(long, value_name = "DIR", requires = "checkpoint")]
     compare: Option<PathBuf>,
-    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
-    policy: BuiltinPolicy,
+    #[arg(long, value_enum, default_value_t = BuiltinArg::Random)]
+    policy: BuiltinArg,
     /// Damage condition (default severe, as in `live` and `video`).
     #[arg(long, value_name = "healthy|mild|severe")]
     condition: Option<Condition>,
@@ -83,7 +83,7 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
         actors.push(Actor::load(dir)?);
     }
     if actors.is_empty() {
-        actors.push(Actor::Builtin(args.policy));
+        actors.push(Actor::Builtin(args.policy.into()));
     }
     for actor in &actors {
         args.env.note_unused(actor, &config);

@@ -5,7 +5,9 @@ use clap::Args;
 use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 
-use gaitscope::rollout::{self, BuiltinPolicy};
+use gaitscope::rollout;
+
+use super::values::BuiltinArg;
 use gaitscope::{AntEnv, Condition, ConditionChoice};
 
 use super::{EnvArgs, fork_option};
@@ -18,8 +20,8 @@ pub(crate) struct RolloutArgs {
     /// a saved state's own).
     #[arg(long, value_name = "healthy|mild|severe")]
     condition: Option<Condition>,
-    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random, conflicts_with = "init_state")]
-    policy: BuiltinPolicy,
+    #[arg(long, value_enum, default_value_t = BuiltinArg::Random, conflicts_with = "init_state")]
+    policy: BuiltinArg,
     /// Episodes to run (default 5; with --init-state there is one, from that state).
     #[arg(long, value_name = "N")]
     episodes: Option<usize>,
@@ -161,7 +163,7 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
     for episode in 0..episodes {
         let seed = seed.wrapping_add(episode as u64);
         let summary =
-            rollout::run_builtin_episode_with(&mut env, args.policy, episode, seed, |r| {
+            rollout::run_builtin_episode_with(&mut env, args.policy.into(), episode, seed, |r| {
                 step_line(&mut out, args.jsonl, r)
             })
             .with_context(|| format!("episode {episode} (seed {seed})"))?;

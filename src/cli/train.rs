@@ -6,10 +6,11 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use gaitscope::policy::{AuxKind, EncoderKind, Privileged};
-use gaitscope::train::{self, sac::UpdatePath};
+use gaitscope::policy::{EncoderKind, Privileged};
+use gaitscope::train;
 
 use super::EnvArgs;
+use super::values::{AuxArg, EncoderArg, PrivilegedArg, UpdateArg};
 
 #[derive(Args)]
 pub(crate) struct TrainArgs {
@@ -20,7 +21,7 @@ pub(crate) struct TrainArgs {
     /// Feature extractor: none (baseline), lstm (the paper's, default), mlp-window (ablation).
     /// With --resume it must match the run's, and may be left out.
     #[arg(long, value_enum)]
-    encoder: Option<EncoderKind>,
+    encoder: Option<EncoderArg>,
     /// Total env steps (a resumed run stops at the same total).
     #[arg(long, default_value_t = 500_000)]
     steps: u64,
@@ -79,33 +80,18 @@ pub(crate) struct TrainArgs {
     #[arg(long)]
     threads: Option<usize>,
     /// The update: fused (fast, the default) or reference (candle's autograd, for comparison).
-    #[arg(long, value_enum, default_value_t = UpdatePath::Fused)]
-    update: UpdatePath,
+    #[arg(long, value_enum, default_value_t = UpdateArg::Fused)]
+    update: UpdateArg,
     /// A self-supervised auxiliary loss for the encoders: dynamics (a head predicts the
     /// normalised change of the observation from [z, o_t, a_t]); none is plain SAC. No damage
     /// label enters it. With --resume it must match the run's, and may be left out.
     #[arg(long, value_enum)]
-    aux: Option<AuxKind>,
+    aux: Option<AuxArg>,
     /// Weight of the auxiliary loss in each network's loss (default 1).
     #[arg(long, value_name = "W")]
     aux_weight: Option<f64>,
     #[command(flatten)]
     env: EnvArgs,
-}
-
-/// `--privileged`: the CLI's name for [`gaitscope::policy::Privileged`].
-#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub(crate) enum PrivilegedArg {
-    /// The true per-joint torque scales (8 values).
-    Damage,
-}
-
-impl From<PrivilegedArg> for Privileged {
-    fn from(p: PrivilegedArg) -> Self {
-        match p {
-            PrivilegedArg::Damage => Privileged::Damage,
-        }
-    }
 }
 
 #[derive(Args)]
@@ -124,9 +110,10 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
     let Some(out) = args.resume.clone().or(args.out.clone()) else {
         bail!("train needs --out DIR (or --resume DIR)");
     };
+    let encoder_flag: Option<EncoderKind> = args.encoder.map(Into::into);
     let requested = train::RunIdentity {
-        encoder: args.encoder,
-        aux: args.aux,
+        encoder: encoder_flag,
+        aux: args.aux.map(Into::into),
         aux_weight: args.aux_weight,
     };
     // A resumed run keeps what it is; the flags may only repeat it.
@@ -154,14 +141,14 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
     };
     let encoder = match &args.resume {
         Some(dir) => gaitscope::policy::checkpoint::read_meta(dir)?.net.encoder,
-        None if privileged != Privileged::None => match args.encoder {
+        None if privileged != Privileged::None => match encoder_flag {
             None | Some(EncoderKind::None) => EncoderKind::None,
             Some(other) => bail!(
                 "--privileged {privileged} makes the memoryless oracle (encoder none); it takes \
                  no --encoder {other} (an oracle that reads the true damage needs no memory)"
             ),
         },
-        None => args.encoder.unwrap_or(EncoderKind::Lstm),
+        None => encoder_flag.unwrap_or(EncoderKind::Lstm),
     };
     let mut opts = train::ant_options(encoder, args.steps, args.seed, out.clone());
     if privileged != Privileged::None {
@@ -192,7 +179,7 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
         opts.sac.learning_starts = l;
     }
     opts.sac.aux = aux;
-    opts.update = args.update;
+    opts.update = args.update.into();
     opts.threads = match args.threads {
         Some(0) => bail!("--threads must be at least 1"),
         Some(n) => n,

@@ -4,8 +4,10 @@ use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 
+use super::values::BuiltinArg;
+#[cfg(feature = "video")]
+use super::values::CameraArg;
 use gaitscope::Condition;
-use gaitscope::rollout::BuiltinPolicy;
 
 use super::EnvArgs;
 
@@ -27,8 +29,8 @@ pub(crate) struct VideoArgs {
     /// Start from this state (a saved state with its damage, or a bare {"qpos", "qvel"}).
     #[arg(long, value_name = "FILE")]
     init_state: Option<std::path::PathBuf>,
-    #[arg(long, value_enum, default_value_t = BuiltinPolicy::Random)]
-    policy: BuiltinPolicy,
+    #[arg(long, value_enum, default_value_t = BuiltinArg::Random)]
+    policy: BuiltinArg,
     #[arg(long, value_name = "healthy|mild|severe", default_value = "severe")]
     condition: Condition,
     /// The episode's seed. Default: the most typical of seeds 0–7 for the checkpoints (printed);
@@ -49,8 +51,8 @@ pub(crate) struct VideoArgs {
     fps: u32,
     /// track: follow the torso; fixed: a still view of start and goal.
     #[cfg(feature = "video")]
-    #[arg(long, value_enum, default_value_t = gaitscope::video::CameraMode::Track)]
-    camera: gaitscope::video::CameraMode,
+    #[arg(long, value_enum, default_value_t = CameraArg::Track)]
+    camera: CameraArg,
     /// (This build has no renderer: `video` says so whatever the camera.)
     #[cfg(not(feature = "video"))]
     #[arg(long, value_name = "track|fixed")]
@@ -76,7 +78,7 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
     // Each model runs in its own world (lane::Actor::world) under this condition and limit.
     let actor = match &args.checkpoint {
         Some(dir) => gaitscope::lane::Actor::load(dir)?,
-        None => gaitscope::lane::Actor::Builtin(args.policy),
+        None => gaitscope::lane::Actor::Builtin(args.policy.into()),
     };
     let mut config = args.env.load()?;
     config.env.max_episode_steps = args.max_steps;
@@ -96,7 +98,7 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
         width: args.width,
         height: args.height,
         fps: args.fps,
-        camera: args.camera,
+        camera: args.camera.into(),
     };
     let started = std::time::Instant::now();
     let summary = render(VideoOptions {

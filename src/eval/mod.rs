@@ -20,7 +20,7 @@ use crate::damage::{Condition, ConditionChoice, N_ACTUATORS};
 use crate::env::EnvError;
 use crate::plots::{self, ErrorBarSeries, PlotError};
 use crate::policy::checkpoint::{CheckpointError, write_atomic};
-use crate::policy::{ActionMode, EncoderKind, Policy};
+use crate::policy::{ActionMode, EncoderKind, OracleView, Policy};
 use stats::{McNemar, Rate, mcnemar, recovery_fraction};
 
 /// What an evaluation cell runs under: a damage condition (fatigue as in training), or a
@@ -101,6 +101,15 @@ fn check_scenarios(opts: &EvalOptions, policies: &[Policy]) -> Result<(), EvalEr
     Ok(())
 }
 
+/// An oracle's label when it is told every joint is healthy: `oracle-s0` →
+/// `oracle-told-healthy-s0`, so its seeds group as `oracle-told-healthy`.
+pub fn told_healthy_label(label: &str) -> String {
+    match seeds::split_seed(label) {
+        Some((stem, seed)) => format!("{stem}-told-healthy-s{seed}"),
+        None => format!("{label}-told-healthy"),
+    }
+}
+
 /// Evaluation seeds start here: training seeds are small integers and streams derived from them.
 pub const EVAL_SEED_BASE: u64 = 1_000_000_000;
 /// Success is also reported within these step budgets (the paper's).
@@ -123,7 +132,11 @@ pub enum EvalError {
     #[error(transparent)]
     Plot(#[from] PlotError),
     #[error("cannot write {path}: {reason}")]
-    Write { path: PathBuf, reason: String },
+    Write {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("invalid evaluation options: {0}")]
     Options(String),
 }
@@ -131,6 +144,10 @@ pub enum EvalError {
 #[derive(Debug, Clone)]
 pub struct EvalOptions {
     pub checkpoints: Vec<PathBuf>,
+    /// Oracles to evaluate a second time, told every joint is healthy whatever the damage
+    /// ([`crate::policy::OracleView::ToldHealthy`]): what knowing the damage is worth to each
+    /// network. Each is its own model, labelled [`told_healthy_label`].
+    pub told_healthy: Vec<PathBuf>,
     pub episodes: usize,
     pub seed_base: u64,
     pub conditions: Vec<Case>,
@@ -261,11 +278,27 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
         .build()
         .map_err(|e| EvalError::Options(format!("thread pool: {e}")))?;
     // Every checkpoint loads, and every scenario fits every model, before any episode runs.
-    let policies = opts
+    let mut models: Vec<(&PathBuf, OracleView)> = opts
         .checkpoints
         .iter()
-        .map(|dir| Policy::load(dir, None))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|dir| (dir, OracleView::Truth))
+        .collect();
+    models.extend(
+        opts.told_healthy
+            .iter()
+            .map(|dir| (dir, OracleView::ToldHealthy)),
+    );
+    let policies = models
+        .iter()
+        .map(|&(dir, view)| {
+            Policy::load(dir, None)?
+                .with_oracle_view(view)
+                .map_err(|source| EvalError::Policy {
+                    model: format!("--told-healthy {}", dir.display()),
+                    source,
+                })
+        })
+        .collect::<Result<Vec<_>, EvalError>>()?;
     check_scenarios(opts, &policies)?;
     let mut labels = Vec::new();
     let mut runs: Vec<(String, u64, PathBuf)> = Vec::new();
@@ -273,12 +306,15 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
     let mut wall_time_s = BTreeMap::new();
     let mut refilled_runs = BTreeMap::new();
     let progress = crate::progress::bar(
-        (opts.checkpoints.len() * opts.conditions.len() * seeds.len()) as u64,
+        (models.len() * opts.conditions.len() * seeds.len()) as u64,
         "eval episodes",
     );
-    for (dir, policy) in opts.checkpoints.iter().zip(policies) {
+    for (&(dir, view), policy) in models.iter().zip(policies) {
         let actor = crate::lane::Actor::from_policy(dir, policy.clone());
-        let mut label = model_label(dir);
+        let mut label = match view {
+            OracleView::Truth => model_label(dir),
+            OracleView::ToldHealthy => told_healthy_label(&model_label(dir)),
+        };
         while labels.contains(&label) {
             label.push('\'');
         }
@@ -695,12 +731,12 @@ impl EvalReport {
 pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, EvalError> {
     std::fs::create_dir_all(out).map_err(|e| EvalError::Write {
         path: out.to_owned(),
-        reason: e.to_string(),
+        reason: e.into(),
     })?;
     let json_path = out.join("eval.json");
     let json = serde_json::to_vec_pretty(report).map_err(|e| EvalError::Write {
         path: json_path.clone(),
-        reason: e.to_string(),
+        reason: e.into(),
     })?;
     write_atomic(&json_path, &json)?;
     let mut models: Vec<&str> = Vec::new();

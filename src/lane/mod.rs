@@ -38,7 +38,7 @@ pub enum LaneError {
 }
 
 /// Policies that need no checkpoint.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BuiltinPolicy {
     /// Uniform in [−1, 1]⁸ from a seeded RNG.
@@ -611,11 +611,10 @@ pub fn advance_lockstep(
     match (actor.policy(), mode) {
         (Some(policy), ActionMode::Deterministic) => {
             let uses_window = policy.net().encoder.uses_window();
-            let privileged = policy.net().privileged;
             let (mut obs, mut windows) = (Vec::new(), Vec::new());
             for &i in &active {
                 let lane = &lanes[i];
-                privileged.input(&lane.run.obs, lane.env.damage().scale(), &mut obs);
+                policy.model_input(&lane.run.obs, lane.env.damage().scale(), &mut obs);
                 if uses_window {
                     windows.extend_from_slice(lanes[i].run.window.as_slice());
                 }

@@ -27,7 +27,8 @@ pub enum StateFileError {
     #[error("state file {path} is malformed: {reason}")]
     Malformed {
         path: std::path::PathBuf,
-        reason: String,
+        #[source]
+        reason: crate::Cause,
     },
 }
 
@@ -121,7 +122,7 @@ impl StartState {
             })?;
         Self::parse(&text).map_err(|reason| StateFileError::Malformed {
             path: path.to_owned(),
-            reason,
+            reason: reason.into(),
         })
     }
 

@@ -79,7 +79,11 @@ pub enum CheckpointError {
         source: std::io::Error,
     },
     #[error("{path} is not a valid checkpoint.json: {reason}")]
-    BadMeta { path: PathBuf, reason: String },
+    BadMeta {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("checkpoint {dir} holds a '{found}' model, expected '{expected}'")]
     WrongKind {
         dir: PathBuf,
@@ -99,7 +103,11 @@ pub enum CheckpointError {
     )]
     SavePending(PathBuf),
     #[error("{path} is not a readable safetensors file: {reason}")]
-    BadWeights { path: PathBuf, reason: String },
+    BadWeights {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("checkpoint {dir}: tensor '{name}' is missing from model.safetensors")]
     MissingTensor { dir: PathBuf, name: String },
     #[error("checkpoint {dir}: unexpected tensor '{name}' (not part of a '{kind}' model)")]
@@ -183,11 +191,11 @@ pub fn safetensors_bytes<'a>(
         .collect::<Result<_, _>>()
         .map_err(|e| CheckpointError::BadWeights {
             path: PathBuf::from("<memory>"),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
     safetensors::serialize(views, None).map_err(|e| CheckpointError::BadWeights {
         path: PathBuf::from("<memory>"),
-        reason: e.to_string(),
+        reason: e.into(),
     })
 }
 
@@ -204,7 +212,7 @@ pub fn load_expected_tensors(
     let file =
         safetensors::SafeTensors::deserialize(bytes).map_err(|e| CheckpointError::BadWeights {
             path: path.to_owned(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
     let dir = dir.to_owned();
     for name in file.names() {
@@ -331,7 +339,7 @@ impl SacModel {
             let reason = describe_shape_difference(&shapes, &meta.tensors);
             return Err(CheckpointError::BadMeta {
                 path: meta_path,
-                reason,
+                reason: reason.into(),
             });
         }
         let path = dir.join(MODEL_FILE);
@@ -382,7 +390,7 @@ fn describe_shape_difference(
 pub fn meta_json(dir: &Path, meta: &CheckpointMeta) -> Result<Vec<u8>, CheckpointError> {
     serde_json::to_vec_pretty(meta).map_err(|e| CheckpointError::BadMeta {
         path: dir.join(META_FILE),
-        reason: e.to_string(),
+        reason: e.into(),
     })
 }
 
@@ -442,7 +450,7 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, CheckpointError> {
     let meta: CheckpointMeta =
         serde_json::from_str(&text).map_err(|e| CheckpointError::BadMeta {
             path: path.clone(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
     if meta.format_version != FORMAT_VERSION {
         return Err(CheckpointError::BadMeta {
@@ -450,7 +458,8 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, CheckpointError> {
             reason: format!(
                 "format version {} (this gaitscope reads {FORMAT_VERSION})",
                 meta.format_version
-            ),
+            )
+            .into(),
         });
     }
     // An oracle's input size follows from its privileged inputs; a hand-edited file that
@@ -458,7 +467,10 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, CheckpointError> {
     if meta.net.privileged != super::Privileged::None {
         meta.net
             .check_inputs()
-            .map_err(|reason| CheckpointError::BadMeta { path, reason })?;
+            .map_err(|reason| CheckpointError::BadMeta {
+                path,
+                reason: reason.into(),
+            })?;
     }
     Ok(meta)
 }

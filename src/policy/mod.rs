@@ -33,7 +33,7 @@ pub const LOG_STD_MAX: f64 = 2.0;
 pub const TANH_EPS: f64 = 1e-6;
 
 /// Which feature extractor a model uses.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum EncoderKind {
     /// Memoryless baseline: the observation only.
@@ -244,7 +244,7 @@ impl AuxConfig {
 }
 
 /// The auxiliary losses there are.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum AuxKind {
     /// None: today's SAC.
@@ -297,6 +297,10 @@ pub enum PolicyError {
     Noise { batch: usize, act_dim: usize },
     #[error("the policy returned no decision")]
     NoDecision,
+    #[error(
+        "only an oracle (a model trained with --privileged damage) can be told the damage; this one reads the observation alone"
+    )]
+    NotAnOracle,
     #[error("policy inference failed")]
     Candle(#[from] candle_core::Error),
 }
@@ -694,7 +698,7 @@ impl SacModel {
 }
 
 /// How the policy picks an action.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ActionMode {
     /// tanh(mean): evaluation.
@@ -711,12 +715,27 @@ pub struct Decision {
     pub z: Option<Vec<f32>>,
 }
 
+/// What an oracle is told about the damage. Always the truth, except in the ablation that asks
+/// what the telling is worth to the trained network: the same episodes with every scale held at
+/// 1, as if nothing had happened. An oracle that does as well told nothing has not learned to
+/// use what it reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OracleView {
+    /// The true torque scale of every actuator.
+    #[default]
+    Truth,
+    /// Every scale 1, whatever the damage.
+    ToldHealthy,
+}
+
 /// A trained actor, ready to act: what eval, record and the live viewer load.
 #[derive(Debug, Clone)]
 pub struct Policy {
     pub meta: CheckpointMeta,
     pub actor: Actor,
     device: Device,
+    oracle_view: OracleView,
 }
 
 impl Policy {
@@ -725,7 +744,37 @@ impl Policy {
             meta,
             actor,
             device,
+            oracle_view: OracleView::Truth,
         }
+    }
+
+    /// The same oracle, told `view` instead of the truth; refused for a model without
+    /// privileged inputs (there is nothing to tell it).
+    pub fn with_oracle_view(mut self, view: OracleView) -> std::result::Result<Self, PolicyError> {
+        if view != OracleView::Truth && self.meta.net.privileged == Privileged::None {
+            return Err(PolicyError::NotAnOracle);
+        }
+        self.oracle_view = view;
+        Ok(self)
+    }
+
+    pub fn oracle_view(&self) -> OracleView {
+        self.oracle_view
+    }
+
+    /// The network's input for one env, appended to `out`: the observation, then (an oracle's)
+    /// the torque scales as its [`OracleView`] tells them.
+    pub fn model_input(
+        &self,
+        obs: &[f64],
+        scales: &[f64; crate::damage::N_ACTUATORS],
+        out: &mut Vec<f32>,
+    ) {
+        let told = match self.oracle_view {
+            OracleView::Truth => scales,
+            OracleView::ToldHealthy => &[1.0; crate::damage::N_ACTUATORS],
+        };
+        self.meta.net.privileged.input(obs, told, out);
     }
 
     pub fn net(&self) -> &NetConfig {
@@ -756,7 +805,7 @@ impl Policy {
         noise: Option<&[f32]>,
     ) -> std::result::Result<Decision, PolicyError> {
         let mut input = Vec::with_capacity(self.meta.net.obs_dim);
-        self.meta.net.privileged.input(obs, scales, &mut input);
+        self.model_input(obs, scales, &mut input);
         let obs = input;
         let window = self
             .meta

@@ -40,7 +40,7 @@ const FOLDED_DIM: usize = CONTEXT_LEN * (OBS_DIM + ACT_DIM) + OBS_DIM;
 const LSTM_SUFFIXES: [&str; 4] = ["weight_ih_l0", "weight_hh_l0", "bias_ih_l0", "bias_hh_l0"];
 
 /// Which encoder the imported model gets.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ImportEncoder {
     /// `none` for a 29-d observation, `lstm` for the 621-d folded window with one LSTM.

@@ -121,7 +121,8 @@ pub fn cross_validate(
     if folds.is_empty() {
         return Err(ProbeError::Fit {
             what: name.into(),
-            reason: format!("{k}-fold cross-validation needs episodes in at least two folds"),
+            reason: format!("{k}-fold cross-validation needs episodes in at least two folds")
+                .into(),
         });
     }
     let of = |f: &dyn Fn(&Scores) -> f64| MeanSd::of(&folds.iter().map(f).collect::<Vec<_>>());
@@ -252,7 +253,7 @@ pub fn probe_cv(
 }
 
 /// Paired differences over training seeds: their mean, how many are above zero, and the
-/// seed-level sign-flip test (`eval::seeds::seed_sign_flip_p`).
+/// seed-level sign-flip test (`eval::stats::seed_sign_flip_p`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SeedPaired {
     pub seeds: usize,
@@ -267,7 +268,7 @@ impl SeedPaired {
             seeds: differences.len(),
             mean: MeanSd::of(differences).mean,
             ahead: differences.iter().filter(|&&d| d > 0.0).count(),
-            sign_flip_p: crate::eval::seeds::seed_sign_flip_p(differences),
+            sign_flip_p: crate::eval::stats::seed_sign_flip_p(differences),
         }
     }
 }

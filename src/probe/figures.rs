@@ -76,7 +76,7 @@ pub fn figures(
 ) -> Result<Vec<PathBuf>, ProbeError> {
     std::fs::create_dir_all(out).map_err(|e| ProbeError::Read {
         path: out.to_owned(),
-        reason: e.to_string(),
+        reason: e.into(),
     })?;
     let mut written = Vec::new();
     // This model's colour and the baseline's, as in every other figure.

@@ -39,11 +39,11 @@ impl ProbeFile {
         let path = dir.join(PROBE_FILE);
         let text = std::fs::read_to_string(&path).map_err(|e| ProbeError::Read {
             path: path.clone(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
         serde_json::from_str(&text).map_err(|e| ProbeError::Read {
             path,
-            reason: e.to_string(),
+            reason: e.into(),
         })
     }
 
@@ -190,7 +190,7 @@ pub fn save(file: &ProbeFile, checkpoint: &Path) -> Result<PathBuf, ProbeError> 
     let path = checkpoint.join(PROBE_FILE);
     let json = serde_json::to_vec_pretty(file).map_err(|e| ProbeError::Fit {
         what: "probe.json".into(),
-        reason: e.to_string(),
+        reason: e.into(),
     })?;
     write_atomic(&path, &json)?;
     Ok(path)

@@ -105,7 +105,7 @@ impl LinearProbe {
         classes.dedup();
         let fail = |e: &dyn std::fmt::Display| ProbeError::Fit {
             what: what.to_string(),
-            reason: e.to_string(),
+            reason: e.to_string().into(),
         };
         let (weights, intercepts) = match classes.len() {
             0 => {

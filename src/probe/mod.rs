@@ -49,11 +49,19 @@ pub enum ProbeError {
     #[error("{0} has no context encoder, so there is no z to probe")]
     NoLatent(PathBuf),
     #[error("fitting the {what} probe: {reason}")]
-    Fit { what: String, reason: String },
+    Fit {
+        what: String,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error(transparent)]
     Plot(#[from] PlotError),
     #[error("cannot read {path}: {reason}")]
-    Read { path: PathBuf, reason: String },
+    Read {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("{0}")]
     Options(String),
     #[error("explaining z")]

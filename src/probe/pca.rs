@@ -25,7 +25,7 @@ impl PcaBasis {
     pub fn fit(z: &Array2<f64>, axes: usize) -> Result<Self, ProbeError> {
         let fit_error = |reason: String| ProbeError::Fit {
             what: "PCA".into(),
-            reason,
+            reason: reason.into(),
         };
         let (n, dims) = z.dim();
         if n < 2 || dims == 0 {

@@ -154,7 +154,7 @@ fn joint_names(world: &crate::config::GaitConfig) -> Result<Vec<String>, ProbeEr
 fn write_onset(runs: &[OnsetAttribution], out: &Path) -> Result<Vec<PathBuf>, ProbeError> {
     let json = serde_json::to_vec_pretty(runs).map_err(|e| ProbeError::Fit {
         what: "onset-attribution.json".into(),
-        reason: e.to_string(),
+        reason: e.into(),
     })?;
     let json_path = out.join("onset-attribution.json");
     crate::policy::checkpoint::write_atomic(&json_path, &json)?;
@@ -187,7 +187,7 @@ fn write_report(report: &ProbeReport, out: &Path) -> Result<Vec<PathBuf>, ProbeE
     };
     let json = serde_json::to_vec_pretty(report).map_err(|e| ProbeError::Fit {
         what: "probe-cv.json".into(),
-        reason: e.to_string(),
+        reason: e.into(),
     })?;
     let json = write(out.join("probe-cv.json"), &json)?;
     let md = write(out.join("probe-cv.md"), report.markdown().as_bytes())?;

@@ -54,12 +54,17 @@ pub struct RunMetrics {
 #[derive(Debug, thiserror::Error)]
 pub enum CurvesError {
     #[error("reading {path}: {reason}")]
-    Read { path: PathBuf, reason: String },
+    Read {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
     #[error("{path} line {line}: {reason}")]
     Line {
         path: PathBuf,
         line: usize,
-        reason: String,
+        #[source]
+        reason: crate::Cause,
     },
     #[error("{0} has no finished episodes yet")]
     Empty(PathBuf),
@@ -78,7 +83,7 @@ impl RunMetrics {
         };
         let text = std::fs::read_to_string(&path).map_err(|e| CurvesError::Read {
             path: path.clone(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
         let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
         let mut metrics = RunMetrics::default();
@@ -90,7 +95,7 @@ impl RunMetrics {
                     return Err(CurvesError::Line {
                         path: path.clone(),
                         line: i + 1,
-                        reason: e.to_string(),
+                        reason: e.into(),
                     });
                 }
             };
@@ -236,7 +241,7 @@ pub fn figure(runs: &[CurveRun], out: &Path) -> Result<(), CurvesError> {
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| CurvesError::Read {
             path: dir.to_path_buf(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
     }
     line_panels(out, "env steps", 2, &panels(runs))?;

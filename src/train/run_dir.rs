@@ -40,7 +40,11 @@ pub enum RunDirError {
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
     #[error("{path}: cannot complete the interrupted save: {reason}")]
-    Recover { path: PathBuf, reason: String },
+    Recover {
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunDirError + '_ {
@@ -184,7 +188,7 @@ impl RunDir {
         };
         let bad = |reason: String| RunDirError::Recover {
             path: manifest_path.clone(),
-            reason,
+            reason: reason.into(),
         };
         let manifest: Manifest =
             serde_json::from_slice(&text).map_err(|e| bad(format!("unreadable manifest: {e}")))?;
@@ -264,7 +268,7 @@ impl RunDir {
         let manifest_path = self.dir.join(PENDING_FILE);
         let json = serde_json::to_vec_pretty(&manifest).map_err(|e| RunDirError::Recover {
             path: manifest_path.clone(),
-            reason: e.to_string(),
+            reason: e.into(),
         })?;
         write_atomic(&manifest_path, &json)?;
         sync_dir(&self.dir)?;

@@ -16,7 +16,7 @@ use crate::policy::layers::Grad;
 use crate::policy::{AuxKind, PolicyInput, SacConfig, SacModel, squashed_sample};
 
 /// How an update is computed: the same algorithm either way.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum UpdatePath {
     /// Hand-written forward and backward passes over preallocated buffers ([`FusedSac`]).
     #[default]
