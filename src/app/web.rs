@@ -236,10 +236,11 @@ impl WebServer {
             re_web_viewer_server::WebViewerServer::new("127.0.0.1", front.viewer_backend.into())
                 .map_err(|e| WebError::Viewer(e.to_string()))?;
         let addr = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), front.control_backend);
-        let control = tiny_http::Server::http(addr).map_err(|e| WebError::Bind {
+        // tiny_http's error is already a boxed error: the cause as it is.
+        let control = tiny_http::Server::http(addr).map_err(|reason| WebError::Bind {
             what: "control page",
             addr,
-            reason: e.into(),
+            reason,
         })?;
         Ok(Self {
             options,

@@ -8,7 +8,10 @@ use serde::Serialize;
 use std::collections::BTreeMap;
 
 use super::Case;
-use super::stats::*;
+use super::stats::{
+    Interval, McNemar, Rate, improvement_bootstrap, iqm_bootstrap, pooled_mcnemar,
+    recovery_fraction, seed_sign_flip_p, sign_flip_floor, stratified_bootstrap,
+};
 use super::{EpisodeRecord, RecoveryFraction, SUCCESS_BUDGETS, episodes_of};
 use crate::damage::Condition;
 use crate::policy::EncoderKind;
