@@ -11,6 +11,7 @@
 //! `gaitscope record`.
 
 pub mod breakpoint;
+pub mod launch;
 mod sim;
 pub mod viewer;
 

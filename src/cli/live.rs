@@ -4,6 +4,11 @@ use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use gaitscope::{app, telemetry};
+
 use super::{EnvArgs, fork_option};
 
 #[derive(Args)]
@@ -111,8 +116,6 @@ fn bundled_checkpoint() -> Result<PathBuf> {
 }
 
 pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
-    use gaitscope::app::{self, viewer};
-    use gaitscope::telemetry::{self, Sink};
     if !args.web && !cfg!(feature = "live") {
         bail!(
             "this gaitscope was built without the `live` feature (the control panel); rebuild \
@@ -177,85 +180,26 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
         args.env
             .note_unused(&gaitscope::lane::Actor::load(dir)?, &requested);
     }
-    let mut checkpoints = app::discover_checkpoints(std::path::Path::new("checkpoints"));
-    for dir in std::iter::once(&checkpoint).chain(&args.compare) {
-        if !checkpoints.contains(dir) {
-            checkpoints.push(dir.clone());
-        }
-    }
-    let recording_id = format!("gaitscope-live-{}", std::process::id());
-    // The blueprint gets a 3-D view per model shown from the start (a model added later from
-    // the panel streams too; the viewer's "+" adds a view for it).
-    let models = 1 + usize::from(args.compare.is_some());
-    let roots: Vec<String> = app::LIVE_ROOTS[..models]
-        .iter()
-        .map(|r| r.to_string())
-        .collect();
-    // The 3-D views titled by checkpoint (the lanes' roots are fixed names).
-    let labels: Vec<String> = std::iter::once(&checkpoint)
-        .chain(&args.compare)
-        .map(|dir| gaitscope::eval::model_label(dir))
-        .collect();
-    let titles = telemetry::view_titles(&labels, &roots);
     // --save writes NAME.partial and renames it once the session's data is flushed.
     let save_file = args.save.as_deref().map(telemetry::PartialFile::new);
-    let save_path = save_file.as_ref().map(|f| f.partial().to_path_buf());
-    let finished = if args.web {
-        live_web(
-            &args,
-            setup,
-            checkpoints,
-            &recording_id,
-            (&roots, &titles),
-            save_path,
-        )?
-    } else {
-        viewer::require_display("gaitscope live")?;
-        let (url, spawned) = match &args.connect {
-            Some(url) => {
-                viewer::check_reachable(url)?;
-                (url.clone(), None)
-            }
-            None => {
-                let path = viewer::find_viewer(args.viewer.as_deref())?;
-                let spawned = viewer::spawn_viewer(&path)?;
-                eprintln!(
-                    "streaming to the Rerun viewer ({}) at {}",
-                    path.display(),
-                    spawned.url
-                );
-                (spawned.url.clone(), Some(spawned))
-            }
-        };
-        let sink = Sink::Viewer {
-            url,
-            save: save_path,
-        };
-        let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
-        let sim = app::SimHandle::spawn(rec, setup)?;
-        let panel = run_panel(&sim, checkpoints, args.exit_after);
-        let finished = sim.shutdown();
-        let stats = panel?;
-        eprintln!(
-            "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
-            stats.frames,
-            stats.seconds,
-            stats.fps(),
-            stats.mean_frame_cpu_ms
-        );
-        // A person closing the panel keeps the viewer to scrub the session; a scripted
-        // --exit-after run leaves nothing running.
-        if let Some(viewer) = &spawned {
-            if args.exit_after.is_some() {
-                if viewer.stop(std::time::Duration::from_secs(5)) {
-                    eprintln!("closed the Rerun viewer it started (--exit-after)");
-                }
-            } else {
-                eprintln!("the Rerun viewer stays open to scrub the session; close it when done");
-            }
-        }
-        finished
+    let launch = app::launch::LiveLaunch {
+        setup,
+        save: save_file.as_ref().map(|f| f.partial().to_path_buf()),
+        exit_after: args.exit_after.map(std::time::Duration::from_secs_f64),
+        offered: app::discover_checkpoints(std::path::Path::new("checkpoints")),
     };
+    // Ctrl-C / SIGTERM end a web session like the page's Quit: the report and the --save file
+    // come out (the native panel handles its own window's close).
+    let stop = Arc::new(AtomicBool::new(false));
+    let front = if args.web {
+        web_front(&args, &stop)?
+    } else {
+        app::launch::FrontEnd::Panel {
+            connect: args.connect.clone(),
+            viewer: args.viewer.clone(),
+        }
+    };
+    let finished = app::launch::run_live(launch, front, &mut print_note)?;
     // A viewer closed before the end leaves data unsent; the session's report still prints.
     // The file is flushed before the viewer (a multi-sink flushes in order), so it is whole
     // then too; on any other error it stays under its .partial name.
@@ -294,100 +238,73 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
     }
 }
 
-/// `live --web`: the same session, its stream served to Rerun's web viewer and its controls
-/// to a page, until the page quits it or --exit-after passes.
-#[cfg(feature = "web")]
-pub(crate) fn live_web(
-    args: &LiveArgs,
-    setup: gaitscope::app::LiveSetup,
-    checkpoints: Vec<PathBuf>,
-    recording_id: &str,
-    (roots, titles): (&[String], &[String]),
-    save: Option<PathBuf>,
-) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
-    use gaitscope::app::{self, web};
-    use gaitscope::telemetry::{self, Sink};
-    let options = web::WebOptions {
-        bind: args.bind,
-        port: args.port,
-        viewer_port: args.viewer_port,
-        grpc_port: args.grpc_port,
-    };
-    options.check_ports()?;
-    if !options.is_loopback() {
-        eprintln!(
-            "warning: listening on {}: anyone who can reach these ports can drive the sim and \
-             watch the stream (the default, 127.0.0.1, keeps them on this machine)",
-            options.bind
-        );
+/// What the launch noticed, said as `live` always said it.
+fn print_note(note: app::launch::LaunchNote) {
+    use app::launch::LaunchNote;
+    match note {
+        LaunchNote::Streaming { viewer, url } => {
+            eprintln!(
+                "streaming to the Rerun viewer ({}) at {url}",
+                viewer.display()
+            );
+        }
+        LaunchNote::Panel(stats) => eprintln!(
+            "panel: {} frames in {:.1} s ({:.1} fps, {:.2} ms CPU per frame)",
+            stats.frames,
+            stats.seconds,
+            stats.fps(),
+            stats.mean_frame_cpu_ms
+        ),
+        LaunchNote::ViewerClosed => eprintln!("closed the Rerun viewer it started (--exit-after)"),
+        LaunchNote::ViewerKept => {
+            eprintln!("the Rerun viewer stays open to scrub the session; close it when done");
+        }
+        #[cfg(feature = "web")]
+        LaunchNote::Exposed { bind } => eprintln!(
+            "warning: listening on {bind}: anyone who can reach these ports can drive the sim and \
+             watch the stream (the default, 127.0.0.1, keeps them on this machine)"
+        ),
+        #[cfg(feature = "web")]
+        LaunchNote::Serving {
+            control,
+            viewer,
+            tunnel,
+        } => {
+            eprintln!("control page:     {control}");
+            eprintln!("Rerun web viewer: {viewer}");
+            eprintln!("from another machine: {tunnel}");
+            eprintln!("(Quit on the page, or Ctrl-C, ends the session)");
+        }
+        #[cfg(feature = "web")]
+        LaunchNote::Served(stats) => eprintln!(
+            "web: {} requests in {:.1} s ({} commands, {} refused)",
+            stats.requests, stats.seconds, stats.commands, stats.refused
+        ),
     }
-    // The public ports behind guards (connection cap, header timeout, Host check); the
-    // servers themselves on loopback ports behind them.
-    let front = web::Front::bind(&options)?;
-    let sink = Sink::Serve {
-        bind: std::net::Ipv4Addr::LOCALHOST.into(),
-        port: front.grpc_backend,
-        save,
-    };
-    let (rec, _) = telemetry::open_titled(&sink, recording_id, roots, titles)?;
-    let sim = app::SimHandle::spawn(rec, setup)?;
-    let server = web::WebServer::start(options.clone(), front, checkpoints)?;
-    eprintln!("control page:     {}", options.control_url());
-    eprintln!("Rerun web viewer: {}", options.viewer_url());
-    eprintln!("from another machine: {}", options.ssh_tunnel());
-    eprintln!("(Quit on the page, or Ctrl-C, ends the session)");
-    let deadline = args
-        .exit_after
-        .map(|s| std::time::Instant::now() + std::time::Duration::from_secs_f64(s));
-    // Ctrl-C / SIGTERM end the session like Quit: the report and the --save file come out.
+}
+
+/// `live --web`: the page and Rerun's web viewer, ended by Quit, --exit-after or the signal
+/// flag `stop` (installed here, at the edge).
+#[cfg(feature = "web")]
+fn web_front<'a>(args: &LiveArgs, stop: &'a Arc<AtomicBool>) -> Result<app::launch::FrontEnd<'a>> {
     use anyhow::Context;
-    use std::sync::Arc;
-    use std::sync::atomic::{AtomicBool, Ordering};
-    let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
     ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
         .context("installing the Ctrl-C handler")?;
-    let stats = server.serve(&sim, deadline, &stop);
-    let finished = sim.shutdown();
-    eprintln!(
-        "web: {} requests in {:.1} s ({} commands, {} refused)",
-        stats.requests, stats.seconds, stats.commands, stats.refused
-    );
-    Ok(finished)
+    Ok(app::launch::FrontEnd::Web {
+        options: app::web::WebOptions {
+            bind: args.bind,
+            port: args.port,
+            viewer_port: args.viewer_port,
+            grpc_port: args.grpc_port,
+        },
+        stop,
+    })
 }
 
 #[cfg(not(feature = "web"))]
-pub(crate) fn live_web(
-    _: &LiveArgs,
-    _: gaitscope::app::LiveSetup,
-    _: Vec<PathBuf>,
-    _: &str,
-    _: (&[String], &[String]),
-    _: Option<PathBuf>,
-) -> Result<Result<gaitscope::app::SimReport, gaitscope::app::LiveError>> {
+fn web_front<'a>(_: &LiveArgs, _: &'a Arc<AtomicBool>) -> Result<app::launch::FrontEnd<'a>> {
     bail!(
         "this gaitscope was built without the `web` feature (Rerun's web viewer and the control page); build with the default features"
     )
-}
-
-#[cfg(feature = "live")]
-pub(crate) fn run_panel(
-    sim: &gaitscope::app::SimHandle,
-    checkpoints: Vec<PathBuf>,
-    exit_after: Option<f64>,
-) -> Result<gaitscope::app::PanelStats> {
-    let options = gaitscope::app::panel::PanelOptions {
-        checkpoints,
-        exit_after: exit_after.map(std::time::Duration::from_secs_f64),
-    };
-    Ok(gaitscope::app::panel::run_panel(sim.link(), options)?)
-}
-
-#[cfg(not(feature = "live"))]
-pub(crate) fn run_panel(
-    _sim: &gaitscope::app::SimHandle,
-    _checkpoints: Vec<PathBuf>,
-    _exit_after: Option<f64>,
-) -> Result<gaitscope::app::PanelStats> {
-    bail!("this gaitscope was built without the `live` feature (the control panel)")
 }
