@@ -12,6 +12,7 @@ pub mod damage;
 pub mod env;
 pub mod eval;
 pub mod explain;
+pub mod files;
 pub mod lane;
 pub mod palette;
 pub mod plots;

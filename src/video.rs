@@ -27,13 +27,13 @@ pub enum VideoError {
     #[error(
         "no OpenGL for offscreen rendering ({0}); on Debian: apt-get install libegl1 libgl1-mesa-dri"
     )]
-    NoGl(String),
+    NoGl(#[source] crate::Cause),
     #[error("rendering failed: {0}")]
     Render(String),
     #[error("cannot start ffmpeg ({0}); on Debian: apt-get install ffmpeg")]
-    NoEncoder(std::io::Error),
+    NoEncoder(#[source] std::io::Error),
     #[error("ffmpeg failed: {0}")]
-    Encoder(String),
+    Encoder(#[source] crate::Cause),
     #[error("cannot write {path}: {reason}")]
     Write {
         path: PathBuf,
@@ -132,7 +132,7 @@ impl FrameRenderer {
             .camera(camera)
             .num_visual_user_geom(2)
             .build(&model)
-            .map_err(|e| VideoError::NoGl(e.to_string()))?;
+            .map_err(|e| VideoError::NoGl(e.into()))?;
         let mut renderer = renderer;
         // The goal: its success disc and a marker (the user scene is drawn into every frame).
         let r = env.config().env.success_radius;
@@ -338,8 +338,8 @@ impl Encoder {
             .map(|o| String::from_utf8_lossy(&o.stderr).trim().to_string())
             .filter(|s| !s.is_empty());
         Err(VideoError::Encoder(match said {
-            Some(said) => said,
-            None => format!("writing a frame: {e}"),
+            Some(said) => said.into(),
+            None => e.into(),
         }))
     }
 
@@ -351,10 +351,10 @@ impl Encoder {
         drop(child.stdin.take()); // end of stream
         let output = child
             .wait_with_output()
-            .map_err(|e| VideoError::Encoder(e.to_string()))?;
+            .map_err(|e| VideoError::Encoder(e.into()))?;
         if !output.status.success() {
             return Err(VideoError::Encoder(
-                String::from_utf8_lossy(&output.stderr).trim().to_string(),
+                String::from_utf8_lossy(&output.stderr).trim().into(),
             ));
         }
         std::fs::rename(&self.tmp, &self.out).map_err(|e| VideoError::Write {

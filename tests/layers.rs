@@ -7,7 +7,7 @@ use std::path::Path;
 
 /// Top-level modules, lowest layer first; a module may name only modules of lower layers.
 const LAYERS: &[&[&str]] = &[
-    &["damage", "plots", "progress"],
+    &["damage", "files", "plots", "progress"],
     &["config", "palette"],
     &["env"],
     &["window"],

@@ -800,6 +800,8 @@ pub enum PanelError {
         "could not open the control panel window: {0}. Is the display reachable (DISPLAY / \
          WAYLAND_DISPLAY)? Headless, use `gaitscope record` instead"
     )]
+    // eframe's error holds window-system handles that are neither Send nor Sync: its text is
+    // all that can travel with the error.
     Window(String),
 }
 

@@ -39,7 +39,7 @@ pub enum ViewerError {
     #[error("{0} not found")]
     RecordingNotFound(PathBuf),
     #[error("spawning the Rerun viewer: {0}")]
-    Spawn(String),
+    Spawn(#[source] crate::Cause),
     #[error(
         "no Rerun viewer is listening at {url} ({reason}); start one there (`rerun`, or \
          `make viewer` then `.deps/rerun/rerun`), or leave out --connect to spawn one"
@@ -245,7 +245,7 @@ pub fn spawn_viewer(viewer: &Path) -> Result<SpawnedViewer, ViewerError> {
         wait_for_bind: true,
         ..Default::default()
     };
-    let info = rerun::spawn(&opts).map_err(|e| ViewerError::Spawn(e.to_string()))?;
+    let info = rerun::spawn(&opts).map_err(|e| ViewerError::Spawn(e.into()))?;
     let pid = children_running(viewer)
         .into_iter()
         .find(|pid| !before.contains(pid));

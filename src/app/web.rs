@@ -153,7 +153,7 @@ pub enum WebError {
     #[error("port {port} is given twice: the control page, web viewer and gRPC need one each")]
     SamePort { port: u16 },
     #[error("starting Rerun's web viewer: {0}")]
-    Viewer(String),
+    Viewer(#[source] crate::Cause),
 }
 
 /// The public ports, each behind a [`super::guard::Guard`] (connection cap, header timeout
@@ -234,7 +234,7 @@ impl WebServer {
     ) -> Result<Self, WebError> {
         let viewer =
             re_web_viewer_server::WebViewerServer::new("127.0.0.1", front.viewer_backend.into())
-                .map_err(|e| WebError::Viewer(e.to_string()))?;
+                .map_err(|e| WebError::Viewer(e.into()))?;
         let addr = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), front.control_backend);
         // tiny_http's error is already a boxed error: the cause as it is.
         let control = tiny_http::Server::http(addr).map_err(|reason| WebError::Bind {

@@ -44,7 +44,8 @@ pub(crate) struct TrainArgs {
     #[arg(long)]
     no_save_replay: bool,
     /// Keep replay.bin in DIR instead of the run folder (e.g. under ~/.cache/gaitscope/, outside
-    /// a git work tree); the run records it, so a later --resume finds it there.
+    /// a git work tree). The run records it; a --resume names it again (a run folder does not
+    /// choose where the trainer writes).
     #[arg(long, value_name = "DIR")]
     replay_dir: Option<PathBuf>,
     /// A resume without its replay buffer first collects min(buffer size, steps done, N)

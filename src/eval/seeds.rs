@@ -24,7 +24,9 @@ pub const BOOTSTRAP_SEED: u64 = 0x5EED_B007;
 /// The model a run belongs to: its folder name without a trailing `-s<seed>`
 /// (`encoder-lstm-s2` → `encoder-lstm`; seed 0 lives in `encoder-lstm` itself).
 pub fn group_of(label: &str) -> String {
-    split_seed(label).map_or(label, |(stem, _)| stem).to_string()
+    split_seed(label)
+        .map_or(label, |(stem, _)| stem)
+        .to_string()
 }
 
 /// `MODEL-sN` as (`MODEL`, `N`); `None` for a label without a seed suffix.

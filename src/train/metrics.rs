@@ -1,6 +1,13 @@
 //! `metrics.jsonl`: CleanRL-style names, one line per episode, update report and resume.
 
-use super::*;
+use serde::Serialize;
+use std::collections::VecDeque;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use super::{METRICS_FILE, ResumeRecord, TrainError, UpdateStats};
+use crate::damage::Condition;
+
 #[derive(Serialize)]
 pub(super) struct EpisodeMetrics {
     pub(super) global_step: u64,

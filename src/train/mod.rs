@@ -20,17 +20,15 @@ pub mod run_dir;
 pub mod sac;
 pub mod update_stats;
 
-use metrics::*;
-use resume::*;
+use metrics::{EpisodeMetrics, MetricsLog, RecentEpisodes, ResumeMetrics, UpdateMetrics};
 pub use resume::{BufferSource, ResumeRecord, RunIdentity, load_learner, read_resumes};
+use resume::{TrainState, aux_name, resume_run, save_run, truncate_metrics};
 
-use candle_core::{Device, Tensor};
+use candle_core::Device;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, VecDeque};
-use std::io::Write;
+use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -39,14 +37,11 @@ use std::time::Instant;
 use crate::config::GaitConfig;
 use crate::damage::Condition;
 use crate::env::{AntEnv, EnvError};
-use crate::policy::checkpoint::{
-    self, CheckpointError, TrainingRecord, load_expected_tensors, safetensors_bytes, write_atomic,
-};
+use crate::policy::checkpoint::{self, CheckpointError};
 use crate::policy::{EncoderKind, NetConfig, Privileged, SacConfig, SacModel};
 use crate::window::ContextWindow;
-use adam::Adam;
 use replay::{Batch, ReplayBuffer, Transition};
-use run_dir::{Place, Recovery, RunDir, SaveStage};
+use run_dir::{RunDir, SaveStage};
 use sac::{SacLearner, UpdatePath, UpdateStats};
 
 pub const STATE_FILE: &str = "train_state.json";
@@ -87,6 +82,14 @@ pub enum TrainError {
     Diverged { step: u64, what: String },
     #[error(transparent)]
     RunDir(#[from] run_dir::RunDirError),
+    #[error(transparent)]
+    File(#[from] crate::files::FileError),
+    #[error(
+        "{state} keeps this run's replay buffer in {recorded}; a run folder does not choose \
+         where the trainer writes: repeat --replay-dir {recorded} to resume with it there, or \
+         give another --replay-dir"
+    )]
+    ReplayDirNotConfirmed { state: PathBuf, recorded: PathBuf },
 }
 
 /// What a training run needs; everything else derives from the seed.
@@ -701,7 +704,10 @@ pub fn ant_options(
 
 #[cfg(test)]
 mod tests {
+    use super::resume::restore_replay;
     use super::*;
+    use crate::policy::checkpoint::TrainingRecord;
+    use std::collections::BTreeMap;
 
     #[test]
     fn a_resume_may_only_repeat_what_the_run_is() {
@@ -1028,6 +1034,137 @@ mod tests {
             ),
             (BufferSource::Refilled, 0, 200)
         );
+    }
+
+    /// replay.bin is read only when it is a regular file of exactly the size this run's buffer
+    /// saves to: a FIFO is refused at once (opening it would block), a symlink to /dev/zero
+    /// and a sparse file of gigabytes are judged by their size before a byte is read (set
+    /// aside when a checksum says the run saved another buffer; refused for a run without one).
+    #[test]
+    fn a_replay_file_is_judged_by_its_kind_and_size_before_it_is_read() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("run");
+        run(&out, 200, false).unwrap();
+        let opts = options(out.clone(), 0);
+        let path = out.join(REPLAY_FILE);
+        let mut replay = new_replay(&opts);
+        assert_eq!(
+            std::fs::metadata(&path).unwrap().len(),
+            replay.file_len(),
+            "the saved buffer is exactly file_len bytes"
+        );
+        let good = std::fs::read(&path).unwrap();
+
+        // A FIFO: refused without blocking.
+        std::fs::remove_file(&path).unwrap();
+        assert!(
+            std::process::Command::new("mkfifo")
+                .arg(&path)
+                .status()
+                .unwrap()
+                .success()
+        );
+        let started = Instant::now();
+        let err = restore_replay(&path, Some(1), &mut replay).unwrap_err();
+        assert!(err.to_string().contains("not a regular file"), "{err}");
+        assert!(started.elapsed().as_secs() < 5);
+        std::fs::remove_file(&path).unwrap();
+
+        // A symlink to /dev/zero: a device, refused.
+        std::os::unix::fs::symlink("/dev/zero", &path).unwrap();
+        let err = restore_replay(&path, None, &mut replay).unwrap_err();
+        assert!(err.to_string().contains("not a regular file"), "{err}");
+        std::fs::remove_file(&path).unwrap();
+
+        // A sparse 2 GiB file: without a checksum refused by its size, with one set aside;
+        // neither reads it (the process would need 2 GiB to).
+        let sparse = std::fs::File::create(&path).unwrap();
+        sparse.set_len(2 << 30).unwrap();
+        drop(sparse);
+        let err = restore_replay(&path, None, &mut replay).unwrap_err();
+        let text = err.to_string();
+        assert!(
+            text.contains("2147483648 bytes") && text.contains(&replay.file_len().to_string()),
+            "{text}"
+        );
+        restore_replay(&path, Some(7), &mut replay).unwrap();
+        assert!(!path.exists() && out.join("replay.bin.mismatched").exists());
+        assert!(replay.is_empty(), "nothing was read into the buffer");
+
+        // The real buffer still reads.
+        std::fs::write(&path, &good).unwrap();
+        restore_replay(&path, Some(crc32fast::hash(&good)), &mut replay).unwrap();
+        assert_eq!(replay.len(), 200);
+    }
+
+    /// train_state.json may name a replay folder elsewhere (`--replay-dir`), but a resume writes
+    /// there only when the command line names it again: an edited state file cannot send the
+    /// trainer's writes to /etc.
+    #[test]
+    fn a_recorded_replay_dir_is_used_only_when_the_command_line_repeats_it() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("run");
+        let elsewhere = tmp.path().join("cache");
+        let mut opts = options(out.clone(), 200);
+        opts.replay_dir = Some(elsewhere.clone());
+        train(
+            &mut Toy::new(),
+            opts,
+            false,
+            Arc::new(AtomicBool::new(false)),
+        )
+        .unwrap();
+        assert!(elsewhere.join(REPLAY_FILE).exists());
+        assert_eq!(state_of(&out).replay_dir, Some(elsewhere.clone()));
+
+        // Resumed without --replay-dir: refused, naming the flag to give; nothing written.
+        let before = snapshot(&out);
+        let err = run(&out, 300, true).unwrap_err();
+        assert!(
+            matches!(&err, TrainError::ReplayDirNotConfirmed { recorded, .. } if *recorded == elsewhere),
+            "{err}"
+        );
+        assert!(err.to_string().contains("repeat --replay-dir"), "{err}");
+        let mut after = snapshot(&out);
+        after.remove(run_dir::LOCK_FILE);
+        let mut expected = before.clone();
+        expected.remove(run_dir::LOCK_FILE);
+        assert_eq!(after, expected);
+
+        // A state file edited to point at another folder: refused the same way.
+        let state_path = out.join(STATE_FILE);
+        let text = std::fs::read_to_string(&state_path).unwrap();
+        let hostile = tmp.path().join("etc");
+        std::fs::write(
+            &state_path,
+            text.replace(
+                &serde_json::to_string(&elsewhere).unwrap(),
+                &serde_json::to_string(&hostile).unwrap(),
+            ),
+        )
+        .unwrap();
+        assert!(matches!(
+            run(&out, 300, true),
+            Err(TrainError::ReplayDirNotConfirmed { .. })
+        ));
+        assert!(
+            !hostile.exists(),
+            "nothing was created where the file pointed"
+        );
+        std::fs::write(&state_path, text).unwrap();
+
+        // Repeated on the command line, the resume restores the buffer there.
+        let mut opts = options(out.clone(), 300);
+        opts.replay_dir = Some(elsewhere.clone());
+        train(
+            &mut Toy::new(),
+            opts,
+            true,
+            Arc::new(AtomicBool::new(false)),
+        )
+        .unwrap();
+        let resume = state_of(&out).resumes.pop().unwrap();
+        assert_eq!(resume.buffer, BufferSource::Restored);
     }
 
     #[test]

@@ -208,6 +208,14 @@ impl ReplayBuffer {
         Ok(())
     }
 
+    /// The exact size in bytes of this buffer as [`Self::write_to`] saves it: the header, then
+    /// every slot whether filled or not. A resume reads no file of another size.
+    pub fn file_len(&self) -> u64 {
+        let floats = 2 * self.obs.len() + self.actions.len() + self.rewards.len();
+        (REPLAY_MAGIC.len() + 6 * 8 + 4 * floats + 2 * self.capacity + 4 * self.t_in_episode.len())
+            as u64
+    }
+
     /// Reads a buffer saved by [`Self::write_to`]; its shape must match `self`'s.
     pub fn read_from(&mut self, r: &mut impl Read) -> Result<(), String> {
         let mut magic = [0u8; 8];

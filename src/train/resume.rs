@@ -2,7 +2,25 @@
 //! one set under the folder's lock, and a resume that reads it all back — weights, optimisers,
 //! RNGs, auxiliary heads and the replay buffer (or refills one).
 
-use super::*;
+use candle_core::{Device, Tensor};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use super::adam::Adam;
+use super::replay::ReplayBuffer;
+use super::run_dir::{Place, Recovery, RunDir, SaveStage};
+use super::sac::SacLearner;
+use super::{
+    METRICS_FILE, OPTIMIZER_FILE, REPLAY_FILE, STATE_FILE, TrainError, TrainOptions, aux,
+    new_replay, validate_options,
+};
+use crate::policy::checkpoint::{
+    self, CheckpointError, TrainingRecord, load_expected_tensors, safetensors_bytes, write_atomic,
+};
+use crate::policy::{EncoderKind, SacModel};
+
 /// Optimiser, RNG and counter state for `--resume`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub(super) struct TrainState {
@@ -273,12 +291,19 @@ pub(super) fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<Res
     if !dir.is_dir() {
         return Err(CheckpointError::NoSuchDir(dir).into());
     }
-    // The buffer's folder: the command line's, else the one the run recorded, else the run's.
-    let replay_dir = opts
-        .replay_dir
-        .clone()
-        .or_else(|| recorded_replay_dir(&dir))
-        .unwrap_or_else(|| dir.clone());
+    // The buffer's folder: the command line's, else the run's own. A folder the run recorded
+    // elsewhere is used only when the command line names it again: train_state.json is a file
+    // anyone can edit, and the trainer writes (and renames) replay.bin wherever it points.
+    let replay_dir = match (&opts.replay_dir, recorded_replay_dir(&dir)) {
+        (Some(given), _) => given.clone(),
+        (None, Some(recorded)) if recorded != dir => {
+            return Err(TrainError::ReplayDirNotConfirmed {
+                state: dir.join(STATE_FILE),
+                recorded,
+            });
+        }
+        (None, _) => dir.clone(),
+    };
     let run = RunDir::lock(&dir, &replay_dir)?;
     match run.recover()? {
         Recovery::Clean => {}
@@ -368,42 +393,52 @@ pub(super) fn restore_replay(
     crc32: Option<u32>,
     replay: &mut ReplayBuffer,
 ) -> Result<(), TrainError> {
-    let bytes = match std::fs::read(path) {
-        Ok(bytes) => bytes,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+    // Only a regular file of exactly the size this run's buffer saves to is read: a FIFO, a
+    // device or a file of any other size is judged before a byte of it is.
+    let expected_len = replay.file_len();
+    let len = match crate::files::regular_len(path) {
+        Ok(len) => len,
+        Err(e) if e.is_not_found() => {
             log::info!(
                 "{} is missing (it is git-ignored; keep it with --replay-dir); the buffer will be refilled",
                 path.display()
             );
             return Ok(());
         }
-        Err(e) => {
-            return Err(TrainError::State {
-                path: path.to_owned(),
-                reason: format!("cannot read: {e}").into(),
-            });
-        }
+        Err(e) => return Err(e.into()),
     };
     let refuse = |reason: String| TrainError::State {
         path: path.to_owned(),
         reason: format!("{reason}; delete it to resume with a refilled buffer").into(),
     };
+    let set_aside = |why: String| -> Result<(), TrainError> {
+        let aside = path.with_extension("bin.mismatched");
+        std::fs::rename(path, &aside).map_err(|e| TrainError::Io {
+            path: aside.clone(),
+            source: e,
+        })?;
+        log::warn!(
+            "{}: {why} (corrupt, or saved by another run or a later save of this one); not used, \
+             moved to {}; the buffer will be refilled",
+            path.display(),
+            aside.display()
+        );
+        Ok(())
+    };
+    if len != expected_len {
+        let why = format!("{len} bytes, where this run's buffer saves to {expected_len}");
+        return match crc32 {
+            Some(_) => set_aside(why),
+            None => Err(refuse(why)),
+        };
+    }
+    let bytes = crate::files::read_capped(path, expected_len)?;
     if let Some(expected) = crc32 {
         let found = crc32fast::hash(&bytes);
         if found != expected {
-            let aside = path.with_extension("bin.mismatched");
-            std::fs::rename(path, &aside).map_err(|e| TrainError::Io {
-                path: aside.clone(),
-                source: e,
-            })?;
-            log::warn!(
-                "{}: CRC-32 {found:08x} does not match train_state.json's {expected:08x} \
-                 (corrupt, or saved by another run or a later save of this one); not used, moved \
-                 to {}; the buffer will be refilled",
-                path.display(),
-                aside.display()
-            );
-            return Ok(());
+            return set_aside(format!(
+                "CRC-32 {found:08x} does not match train_state.json's {expected:08x}"
+            ));
         }
     }
     replay.read_from(&mut bytes.as_slice()).map_err(refuse)
