@@ -1,71 +1,69 @@
 //! Reading the files a user or a run folder names: only regular files (opening a FIFO blocks
 //! until someone writes to it, a device never ends, a folder is no file), and never more bytes
 //! than the caller expects, so a symlink to /dev/zero or a sparse file of terabytes is refused
-//! before any of it is read.
+//! before any of it is read. Errors are I/O errors (`InvalidInput` for what is not a file,
+//! `FileTooLarge` past the bound), so each reader's own error type keeps them as its source.
 
-use std::io::Read;
-use std::path::{Path, PathBuf};
+use std::io::{Error, ErrorKind, Read};
+use std::path::Path;
 
-#[derive(Debug, thiserror::Error)]
-pub enum FileError {
-    #[error("cannot read {path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("{path} is not a regular file (a FIFO, a device or a folder); only files are read")]
-    NotAFile { path: PathBuf },
-    #[error("{path} holds {len} bytes, more than the {max} it may have")]
-    TooLarge { path: PathBuf, len: u64, max: u64 },
-}
-
-impl FileError {
-    /// The file is not there (a missing optional file is often no error).
-    pub fn is_not_found(&self) -> bool {
-        matches!(self, FileError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound)
-    }
+fn not_a_file() -> Error {
+    Error::new(
+        ErrorKind::InvalidInput,
+        "not a regular file (a FIFO, a device or a folder); only files are read",
+    )
 }
 
 /// The length of the regular file at `path` (through symlinks), checked without opening it.
-pub fn regular_len(path: &Path) -> Result<u64, FileError> {
-    let meta = std::fs::metadata(path).map_err(|source| FileError::Io {
-        path: path.to_owned(),
-        source,
-    })?;
+pub fn regular_len(path: &Path) -> std::io::Result<u64> {
+    let meta = std::fs::metadata(path)?;
     if !meta.is_file() {
-        return Err(FileError::NotAFile {
-            path: path.to_owned(),
-        });
+        return Err(not_a_file());
     }
     Ok(meta.len())
 }
 
-/// The whole of a regular file of at most `max` bytes. The length is checked before the file
-/// is opened and the read stops one byte past `max`, so a file that grows meanwhile is refused
+/// Opens `path` for reading only if it is a regular file. The open itself cannot block: it is
+/// made non-blocking (a FIFO without a writer would otherwise wait in `open` for ever) and the
+/// opened handle, not the name, is checked, so a file swapped for a FIFO meanwhile is refused
 /// too.
-pub fn read_capped(path: &Path, max: u64) -> Result<Vec<u8>, FileError> {
-    let len = regular_len(path)?;
-    let too_large = |len| FileError::TooLarge {
-        path: path.to_owned(),
-        len,
-        max,
+pub fn open_regular(path: &Path) -> std::io::Result<std::fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)?;
+    if !file.metadata()?.is_file() {
+        return Err(not_a_file());
+    }
+    Ok(file)
+}
+
+/// The whole of a regular file of at most `max` bytes. The length is checked before a byte is
+/// read and the read stops one byte past `max`, so a file that grows meanwhile is refused too.
+pub fn read_capped(path: &Path, max: u64) -> std::io::Result<Vec<u8>> {
+    let file = open_regular(path)?;
+    let too_large = |len: u64| {
+        Error::new(
+            ErrorKind::FileTooLarge,
+            format!("{len} bytes, more than the {max} it may have"),
+        )
     };
+    let len = file.metadata()?.len();
     if len > max {
         return Err(too_large(len));
     }
-    let io = |source| FileError::Io {
-        path: path.to_owned(),
-        source,
-    };
     let mut bytes = Vec::with_capacity(len as usize);
-    std::fs::File::open(path)
-        .and_then(|f| f.take(max + 1).read_to_end(&mut bytes))
-        .map_err(io)?;
+    file.take(max + 1).read_to_end(&mut bytes)?;
     if bytes.len() as u64 > max {
         return Err(too_large(bytes.len() as u64));
     }
     Ok(bytes)
+}
+
+/// [`read_capped`] as UTF-8 text.
+pub fn read_text_capped(path: &Path, max: u64) -> std::io::Result<String> {
+    String::from_utf8(read_capped(path, max)?).map_err(|e| Error::new(ErrorKind::InvalidData, e))
 }
 
 #[cfg(test)]
@@ -80,37 +78,41 @@ mod tests {
         assert_eq!(read_capped(&file, 100).unwrap(), vec![7u8; 100]);
         assert_eq!(regular_len(&file).unwrap(), 100);
         let err = read_capped(&file, 99).unwrap_err();
-        assert!(
-            matches!(
-                err,
-                FileError::TooLarge {
-                    len: 100,
-                    max: 99,
-                    ..
-                }
-            ),
-            "{err}"
-        );
+        assert_eq!(err.kind(), ErrorKind::FileTooLarge);
+        assert_eq!(err.to_string(), "100 bytes, more than the 99 it may have");
         // A folder, a device and a missing file.
-        assert!(matches!(
-            read_capped(dir.path(), 10),
-            Err(FileError::NotAFile { .. })
-        ));
-        assert!(matches!(
-            read_capped(Path::new("/dev/zero"), 10),
-            Err(FileError::NotAFile { .. })
-        ));
-        let missing = read_capped(&dir.path().join("none"), 10).unwrap_err();
-        assert!(missing.is_not_found(), "{missing}");
+        for not_file in [dir.path(), Path::new("/dev/zero"), Path::new("/dev/null")] {
+            assert_eq!(
+                read_capped(not_file, 10).unwrap_err().kind(),
+                ErrorKind::InvalidInput,
+                "{}",
+                not_file.display()
+            );
+            assert_eq!(
+                regular_len(not_file).unwrap_err().kind(),
+                ErrorKind::InvalidInput
+            );
+        }
+        let missing = dir.path().join("none");
+        assert_eq!(
+            read_capped(&missing, 10).unwrap_err().kind(),
+            ErrorKind::NotFound
+        );
         // A symlink to a device is judged by what it points to.
         let link = dir.path().join("zero.bin");
         std::os::unix::fs::symlink("/dev/zero", &link).unwrap();
         let err = read_capped(&link, 10).unwrap_err();
         assert!(err.to_string().contains("not a regular file"), "{err}");
+        // Text that is not UTF-8.
+        std::fs::write(&file, [0xff, 0xfe]).unwrap();
+        assert_eq!(
+            read_text_capped(&file, 10).unwrap_err().kind(),
+            ErrorKind::InvalidData
+        );
     }
 
-    /// A FIFO is refused without being opened: opening it for reading would block until a
-    /// writer came, and none will.
+    /// A FIFO is refused at once: opening it for reading would block until a writer came, and
+    /// none will.
     #[test]
     fn a_fifo_is_refused_at_once() {
         let dir = tempfile::tempdir().unwrap();
@@ -121,10 +123,13 @@ mod tests {
             .unwrap();
         assert!(status.success());
         let started = std::time::Instant::now();
-        assert!(matches!(
-            read_capped(&fifo, 1 << 20),
-            Err(FileError::NotAFile { .. })
-        ));
+        for err in [
+            read_capped(&fifo, 1 << 20).unwrap_err(),
+            open_regular(&fifo).unwrap_err(),
+            regular_len(&fifo).unwrap_err(),
+        ] {
+            assert_eq!(err.kind(), ErrorKind::InvalidInput);
+        }
         assert!(started.elapsed() < std::time::Duration::from_secs(5));
     }
 }

@@ -221,15 +221,21 @@ pub enum ReplayError {
     SaveBeyondEpisode { at: usize, steps: usize },
 }
 
+/// The most a replay's action list or bare state file may hold (1,000 steps of 8 actions as
+/// JSON are under 200 KB).
+pub const MAX_REPLAY_FILE_BYTES: u64 = 16 << 20;
+
 fn read_json<T: serde::de::DeserializeOwned>(
     what: &'static str,
     path: &Path,
     expected: &str,
 ) -> Result<T, ReplayError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ReplayError::Read {
-        what,
-        path: path.to_owned(),
-        source,
+    let text = crate::files::read_text_capped(path, MAX_REPLAY_FILE_BYTES).map_err(|source| {
+        ReplayError::Read {
+            what,
+            path: path.to_owned(),
+            source,
+        }
     })?;
     serde_json::from_str(&text).map_err(|e| ReplayError::Malformed {
         what,

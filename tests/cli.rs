@@ -873,3 +873,122 @@ fn cli_edges_say_why() {
         "{err}"
     );
 }
+
+/// Issue 49: FIFOs and devices where a file is expected are refused at once with a clear line,
+/// never waited on (a FIFO's open blocks until a writer comes; the command must not). Each run
+/// gets 20 s; any that hangs fails the test instead of the suite.
+#[test]
+fn fifos_and_devices_given_as_files_are_refused_not_waited_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let fifo = dir.path().join("state.json");
+    assert!(
+        Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let rrd = dir.path().join("session.rrd");
+    assert!(Command::new("mkfifo").arg(&rrd).status().unwrap().success());
+    // A checkpoint folder whose weights are a FIFO and whose meta is a device.
+    let ckpt = dir.path().join("ckpt");
+    std::fs::create_dir(&ckpt).unwrap();
+    std::fs::copy(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("checkpoints/baseline/checkpoint.json"),
+        ckpt.join("checkpoint.json"),
+    )
+    .unwrap();
+    assert!(
+        Command::new("mkfifo")
+            .arg(ckpt.join("model.safetensors"))
+            .status()
+            .unwrap()
+            .success()
+    );
+    let zero_meta = dir.path().join("zero-meta");
+    std::fs::create_dir(&zero_meta).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", zero_meta.join("checkpoint.json")).unwrap();
+    let actions = write(dir.path(), "actions.json", "[[0,0,0,0,0,0,0,0]]");
+    let fifo_s = fifo.to_string_lossy().into_owned();
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            vec![
+                "rollout".into(),
+                "--init-state".into(),
+                fifo_s.clone(),
+                "--actions".into(),
+                actions.clone(),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
+                "record".into(),
+                "--init-state".into(),
+                fifo_s.clone(),
+                "--out".into(),
+                dir.path().join("o.rrd").to_string_lossy().into_owned(),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
+                "rollout".into(),
+                "--init-state".into(),
+                "/dev/zero".into(),
+                "--actions".into(),
+                actions.clone(),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
+                "explain".into(),
+                "--checkpoint".into(),
+                ckpt.to_string_lossy().into_owned(),
+                "--step".into(),
+                "3".into(),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
+                "eval".into(),
+                "--checkpoint".into(),
+                zero_meta.to_string_lossy().into_owned(),
+                "--episodes".into(),
+                "1".into(),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec!["view".into(), rrd.to_string_lossy().into_owned()],
+            "not a regular file",
+        ),
+    ];
+    for (args, want) in cases {
+        let started = std::time::Instant::now();
+        let mut child = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+            .args(&args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let status = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break status;
+            }
+            if started.elapsed() > std::time::Duration::from_secs(20) {
+                child.kill().unwrap();
+                child.wait().unwrap();
+                panic!("gaitscope {} hung on a FIFO or device", args.join(" "));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        };
+        let out = child.wait_with_output().unwrap();
+        let said = stderr(&out);
+        assert!(!status.success(), "gaitscope {} succeeded", args.join(" "));
+        assert!(said.contains(want), "gaitscope {}: {said}", args.join(" "));
+        assert!(!said.contains("panicked"), "{said}");
+    }
+}

@@ -149,8 +149,27 @@ fn the_replay_buffer_can_live_outside_the_run_folder() {
     let out = gaitscope(&args);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(cache.join("replay.bin").exists() && !dir.join("replay.bin").exists());
-    // The run remembers where its buffer is: a plain --resume restores it.
+    // The run remembers where its buffer is, but a plain --resume does not follow a folder the
+    // run folder names (issue 49): it says which flag to repeat, and nothing runs.
     let out = gaitscope(&["train", "--resume", dir_s, "--steps", "300", "--quiet"]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains(&format!("repeat --replay-dir {cache_s}")),
+        "{}",
+        stderr(&out)
+    );
+    assert_eq!(steps_done(&dir), 250);
+    // Named again, the resume restores it.
+    let out = gaitscope(&[
+        "train",
+        "--resume",
+        dir_s,
+        "--steps",
+        "300",
+        "--replay-dir",
+        cache_s,
+        "--quiet",
+    ]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(!stderr(&out).contains("refilling"), "{}", stderr(&out));
     let state: Value =
@@ -160,7 +179,16 @@ fn the_replay_buffer_can_live_outside_the_run_folder() {
     assert_eq!(state["resumes"][0]["restored_transitions"], 250);
     // --refill below the floor is refused before anything runs.
     let out = gaitscope(&[
-        "train", "--resume", dir_s, "--steps", "350", "--refill", "500", "--quiet",
+        "train",
+        "--resume",
+        dir_s,
+        "--steps",
+        "350",
+        "--replay-dir",
+        cache_s,
+        "--refill",
+        "500",
+        "--quiet",
     ]);
     assert!(!out.status.success());
     assert!(

@@ -291,7 +291,7 @@ pub fn check_recording(path: &Path) -> Result<(), ViewerError> {
         return Err(ViewerError::RecordingNotFound(path.to_path_buf()));
     }
     let mut magic = [0u8; 4];
-    std::fs::File::open(path)
+    crate::files::open_regular(path)
         .and_then(|mut f| f.read_exact(&mut magic))
         .map_err(|e| err(e.to_string()))?;
     if &magic[..3] != b"RRF" {

@@ -114,7 +114,7 @@ impl StartState {
     pub fn read(path: &Path) -> Result<Self, StateFileError> {
         use std::io::Read;
         let mut text = String::new();
-        std::fs::File::open(path)
+        crate::files::open_regular(path)
             .and_then(|f| f.take(MAX_STATE_BYTES + 1).read_to_string(&mut text))
             .map_err(|source| StateFileError::Read {
                 path: path.to_owned(),

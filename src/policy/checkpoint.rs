@@ -16,6 +16,11 @@ pub const META_FILE: &str = "checkpoint.json";
 pub const FORMAT_VERSION: u32 = 1;
 /// Present while a trainer's save is under way or was interrupted (`train::run_dir`).
 pub const PENDING_SAVE_FILE: &str = "save-pending.json";
+/// The most a checkpoint's weights may hold (the Ant's models are 1–4 MB; an encoder with a
+/// latent of thousands still fits): nothing larger is read.
+pub const MAX_WEIGHTS_BYTES: u64 = 256 << 20;
+/// The most a checkpoint.json may hold (a few KB in practice).
+pub const MAX_META_BYTES: u64 = 1 << 20;
 
 /// `checkpoint.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -343,9 +348,11 @@ impl SacModel {
             });
         }
         let path = dir.join(MODEL_FILE);
-        let bytes = std::fs::read(&path).map_err(|source| CheckpointError::Read {
-            path: path.clone(),
-            source,
+        let bytes = crate::files::read_capped(&path, MAX_WEIGHTS_BYTES).map_err(|source| {
+            CheckpointError::Read {
+                path: path.clone(),
+                source,
+            }
         })?;
         let found = crc32fast::hash(&bytes);
         if found != meta.model_crc32 {
@@ -443,9 +450,11 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, CheckpointError> {
         return Err(CheckpointError::NoSuchDir(dir.to_owned()));
     }
     let path = dir.join(META_FILE);
-    let text = std::fs::read_to_string(&path).map_err(|source| CheckpointError::Read {
-        path: path.clone(),
-        source,
+    let text = crate::files::read_text_capped(&path, MAX_META_BYTES).map_err(|source| {
+        CheckpointError::Read {
+            path: path.clone(),
+            source,
+        }
     })?;
     let meta: CheckpointMeta =
         serde_json::from_str(&text).map_err(|e| CheckpointError::BadMeta {

@@ -82,8 +82,12 @@ pub enum TrainError {
     Diverged { step: u64, what: String },
     #[error(transparent)]
     RunDir(#[from] run_dir::RunDirError),
-    #[error(transparent)]
-    File(#[from] crate::files::FileError),
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
     #[error(
         "{state} keeps this run's replay buffer in {recorded}; a run folder does not choose \
          where the trainer writes: repeat --replay-dir {recorded} to resume with it there, or \

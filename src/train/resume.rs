@@ -396,16 +396,20 @@ pub(super) fn restore_replay(
     // Only a regular file of exactly the size this run's buffer saves to is read: a FIFO, a
     // device or a file of any other size is judged before a byte of it is.
     let expected_len = replay.file_len();
+    let read_error = |source| TrainError::Read {
+        path: path.to_owned(),
+        source,
+    };
     let len = match crate::files::regular_len(path) {
         Ok(len) => len,
-        Err(e) if e.is_not_found() => {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             log::info!(
                 "{} is missing (it is git-ignored; keep it with --replay-dir); the buffer will be refilled",
                 path.display()
             );
             return Ok(());
         }
-        Err(e) => return Err(e.into()),
+        Err(e) => return Err(read_error(e)),
     };
     let refuse = |reason: String| TrainError::State {
         path: path.to_owned(),
@@ -432,7 +436,7 @@ pub(super) fn restore_replay(
             None => Err(refuse(why)),
         };
     }
-    let bytes = crate::files::read_capped(path, expected_len)?;
+    let bytes = crate::files::read_capped(path, expected_len).map_err(read_error)?;
     if let Some(expected) = crc32 {
         let found = crc32fast::hash(&bytes);
         if found != expected {
