@@ -82,16 +82,24 @@ pub struct ResumeRecord {
 /// The resumes a run folder records (`train_state.json`; empty for runs that never resumed or
 /// were saved before resumes were recorded).
 pub fn read_resumes(dir: &Path) -> Result<Vec<ResumeRecord>, TrainError> {
-    let path = dir.join(STATE_FILE);
-    let text = std::fs::read_to_string(&path).map_err(|e| TrainError::State {
-        path: path.clone(),
-        reason: format!("cannot read: {e}").into(),
+    Ok(read_state(&dir.join(STATE_FILE))?.resumes)
+}
+
+/// The most a train_state.json may hold: a few KB, and a line more per resume.
+const MAX_STATE_BYTES: u64 = 4 << 20;
+
+/// A run's train_state.json: a regular file within [`MAX_STATE_BYTES`], parsed.
+fn read_state(path: &Path) -> Result<TrainState, TrainError> {
+    let text = crate::files::read_text_capped(path, MAX_STATE_BYTES).map_err(|source| {
+        TrainError::Read {
+            path: path.to_owned(),
+            source,
+        }
     })?;
-    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::State {
-        path,
+    serde_json::from_str(&text).map_err(|e| TrainError::State {
+        path: path.to_owned(),
         reason: e.into(),
-    })?;
-    Ok(state.resumes)
+    })
 }
 
 /// What a run is, as the command line states it: a resume must match the run's own (and may
@@ -378,8 +386,7 @@ pub(super) fn resume_run(opts: &mut TrainOptions, device: &Device) -> Result<Res
 /// The replay folder a run recorded, if its state file can be read (before the lock is taken,
 /// so a torn or missing state only means "the run folder").
 pub(super) fn recorded_replay_dir(dir: &Path) -> Option<PathBuf> {
-    let text = std::fs::read_to_string(dir.join(STATE_FILE)).ok()?;
-    serde_json::from_str::<TrainState>(&text).ok()?.replay_dir
+    read_state(&dir.join(STATE_FILE)).ok()?.replay_dir
 }
 
 /// Reads `replay.bin` into `replay` when it exists and belongs to this checkpoint. A buffer whose
@@ -460,13 +467,14 @@ pub(super) fn load_run(
 ) -> Result<(SacLearner, TrainState, checkpoint::CheckpointMeta), TrainError> {
     let (model, meta) = SacModel::load(dir, encoder, device)?;
     let state_path = dir.join(STATE_FILE);
-    let text = std::fs::read_to_string(&state_path).map_err(|e| TrainError::State {
-        path: state_path.clone(),
-        reason: format!("cannot read ({e}); was this folder written by `gaitscope train`?").into(),
-    })?;
-    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::State {
-        path: state_path.clone(),
-        reason: e.into(),
+    let state = read_state(&state_path).map_err(|e| match e {
+        TrainError::Read { path, source } if source.kind() == std::io::ErrorKind::NotFound => {
+            TrainError::State {
+                path,
+                reason: "missing; was this folder written by `gaitscope train`?".into(),
+            }
+        }
+        e => e,
     })?;
     if state.model_crc32 != meta.model_crc32 || state.steps_done != meta.steps_done {
         return Err(TrainError::State {
