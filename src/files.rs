@@ -66,6 +66,18 @@ pub fn read_text_capped(path: &Path, max: u64) -> std::io::Result<String> {
     String::from_utf8(read_capped(path, max)?).map_err(|e| Error::new(ErrorKind::InvalidData, e))
 }
 
+/// Makes a FIFO at `path`, for tests. By the system call, not by running `mkfifo`: a child
+/// process forked beside a test holds copies of its open files (and their locks) until it execs,
+/// which made a run-folder lock test fail now and then.
+#[cfg(test)]
+pub(crate) fn mkfifo(path: &Path) {
+    use std::os::unix::ffi::OsStrExt;
+    let name = std::ffi::CString::new(path.as_os_str().as_bytes()).expect("no NUL in a temp path");
+    // SAFETY: `name` is a valid NUL-terminated path that outlives the call.
+    let rc = unsafe { libc::mkfifo(name.as_ptr(), 0o600) };
+    assert_eq!(rc, 0, "mkfifo {}", path.display());
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -117,11 +129,7 @@ mod tests {
     fn a_fifo_is_refused_at_once() {
         let dir = tempfile::tempdir().unwrap();
         let fifo = dir.path().join("replay.bin");
-        let status = std::process::Command::new("mkfifo")
-            .arg(&fifo)
-            .status()
-            .unwrap();
-        assert!(status.success());
+        mkfifo(&fifo);
         let started = std::time::Instant::now();
         for err in [
             read_capped(&fifo, 1 << 20).unwrap_err(),

@@ -251,3 +251,49 @@ fn policy_rejects_bad_inputs() {
         "{err}"
     );
 }
+
+/// Issue 49: an atomic write replaces only a regular file or creates a new one. A FIFO (or a
+/// device, or a folder) at the destination is refused and left as it was — before, the rename
+/// replaced it, and as root `--save-state-at 3 /dev/full` replaced the device node — and a FIFO
+/// squatting on the temp name makes the write fail at once instead of blocking.
+#[test]
+fn an_atomic_write_replaces_only_regular_files() {
+    use gaitscope::policy::checkpoint::write_atomic;
+    use std::os::unix::fs::FileTypeExt;
+    let dir = tempfile::tempdir().unwrap();
+    let mkfifo = |p: &std::path::Path| {
+        assert!(
+            std::process::Command::new("mkfifo")
+                .arg(p)
+                .status()
+                .unwrap()
+                .success()
+        )
+    };
+    let fifo = dir.path().join("state.json");
+    mkfifo(&fifo);
+    let err = write_atomic(&fifo, b"{}").unwrap_err().to_string();
+    assert!(err.contains("not a regular file"), "{err}");
+    assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+    let err = write_atomic(dir.path(), b"{}").unwrap_err().to_string();
+    assert!(err.contains("not a regular file"), "{err}");
+
+    // A FIFO at the temp name: refused without blocking, the destination untouched.
+    let out = dir.path().join("out.json");
+    std::fs::write(&out, b"old").unwrap();
+    mkfifo(&dir.path().join("out.json.tmp"));
+    let started = std::time::Instant::now();
+    assert!(write_atomic(&out, b"new").is_err());
+    assert!(started.elapsed().as_secs() < 5);
+    assert_eq!(std::fs::read(&out).unwrap(), b"old");
+    // Once the squatter is gone (the failed write removed it), the write goes through.
+    write_atomic(&out, b"new").unwrap();
+    assert_eq!(std::fs::read(&out).unwrap(), b"new");
+    // A symlink to a regular file is a regular file's name: the link is replaced.
+    let target = dir.path().join("target.json");
+    std::fs::write(&target, b"t").unwrap();
+    let link = dir.path().join("link.json");
+    std::os::unix::fs::symlink(&target, &link).unwrap();
+    write_atomic(&link, b"via link").unwrap();
+    assert_eq!(std::fs::read(&link).unwrap(), b"via link");
+}

@@ -152,15 +152,40 @@ pub struct TrainingRecord {
     pub imported_from: Option<Provenance>,
 }
 
-/// Writes `bytes` to `path` atomically: a sibling temp file, fsync, rename.
+/// Writes `bytes` to `path` atomically: a sibling temp file, fsync, rename. Only onto a new
+/// name or a regular file (through symlinks): a FIFO, a device or a folder at `path` is refused,
+/// never renamed over (as root a rename would replace `/dev/full` itself), and a temp name
+/// that is not a regular file is never opened in a way that could block.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), CheckpointError> {
     use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
     let tmp = path.with_extension(format!(
         "{}.tmp",
         path.extension().and_then(|e| e.to_str()).unwrap_or("")
     ));
+    let not_a_file = || {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "not a regular file (a FIFO, a device or a folder); only a file is replaced",
+        )
+    };
+    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
+        return Err(CheckpointError::Write {
+            path: path.to_owned(),
+            source: not_a_file(),
+        });
+    }
     let write = || -> std::io::Result<()> {
-        let mut file = std::fs::File::create(&tmp)?;
+        // Non-blocking: a FIFO left at the temp name without a reader fails at once.
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(&tmp)?;
+        if !file.metadata()?.is_file() {
+            return Err(not_a_file());
+        }
         file.write_all(bytes)?;
         file.sync_all()?;
         std::fs::rename(&tmp, path)

@@ -1061,13 +1061,7 @@ mod tests {
 
         // A FIFO: refused without blocking.
         std::fs::remove_file(&path).unwrap();
-        assert!(
-            std::process::Command::new("mkfifo")
-                .arg(&path)
-                .status()
-                .unwrap()
-                .success()
-        );
+        crate::files::mkfifo(&path);
         let started = Instant::now();
         let err = restore_replay(&path, Some(1), &mut replay).unwrap_err();
         assert!(err.to_string().contains("not a regular file"), "{err}");
