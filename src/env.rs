@@ -69,6 +69,18 @@ pub enum EnvError {
     Scenario(#[from] crate::damage::scenario::ScenarioError),
     #[error("unknown body '{name}' to push (the model's bodies: {known})")]
     NoSuchBody { name: String, known: String },
+    #[error(
+        "pushes on {body} would add up to {newtons:.0} N at once, more than the {max} N a push \
+         may have: a push's cap holds for pushes stacked on one body too",
+        max = crate::damage::MAX_PUSH_NEWTONS
+    )]
+    StackedPushes { body: String, newtons: f64 },
+    #[error(
+        "{} pushes would act at once; at most {} may",
+        crate::damage::MAX_ACTIVE_PUSHES + 1,
+        crate::damage::MAX_ACTIVE_PUSHES
+    )]
+    TooManyPushes,
 }
 
 /// One actuator's place in the model: actuator → joint → body.
@@ -796,9 +808,28 @@ impl AntEnv {
             })
     }
 
-    /// A push acting from the next step on, for its number of steps.
+    /// A push acting from the next step on, for its number of steps. The force on one body
+    /// from every push acting at once is held to one push's cap (1,000 × 1,000 N stacked on the
+    /// torso was accepted before), and so is the number of pushes at once.
     fn start_push(&mut self, push: Push, source: Option<&str>) -> Result<(), EnvError> {
+        use crate::damage::{MAX_ACTIVE_PUSHES, MAX_PUSH_NEWTONS};
         let body = self.body_id(&push.body)?;
+        if self.pushes.active.len() >= MAX_ACTIVE_PUSHES {
+            return Err(EnvError::TooManyPushes);
+        }
+        let mut total = push.force;
+        for p in self.pushes.active.iter().filter(|p| p.body == body) {
+            for (t, f) in total.iter_mut().zip(p.push.force) {
+                *t += f;
+            }
+        }
+        let newtons = total.iter().map(|f| f * f).sum::<f64>().sqrt();
+        if newtons > MAX_PUSH_NEWTONS {
+            return Err(EnvError::StackedPushes {
+                body: push.body.clone(),
+                newtons,
+            });
+        }
         self.pushes.active.push(ActivePush {
             body,
             start: self.steps,

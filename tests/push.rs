@@ -181,3 +181,52 @@ fn bad_pushes_are_refused_before_any_step() {
         assert!(Edit::parse_list(bad).is_err(), "{bad}");
     }
 }
+
+/// Issue 49 #11: one push's 1,000 N cap holds for pushes stacked on one body (before, a
+/// thousand 1,000 N pushes at once were accepted); pushes on other bodies, or that cancel, are
+/// fine; and no more than 64 act at once.
+#[test]
+fn stacked_pushes_are_held_to_one_push_cap() {
+    let actor = Actor::Builtin(BuiltinPolicy::Zero);
+    let mut lane = Lane::new(&actor, &world(50), 3).unwrap();
+    lane.apply_edit(&edits("push:torso=800,0,0@10")[0]).unwrap();
+    let err = lane
+        .apply_edit(&edits("push:torso=300,0,0@10")[0])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("torso") && err.contains("1100 N") && err.contains("1000 N"),
+        "{err}"
+    );
+    // Another body, and a push that brings the torso's total back down, are accepted.
+    lane.apply_edit(&edits("push:front_left_leg=800,0,0@10")[0])
+        .unwrap();
+    lane.apply_edit(&edits("push:torso=-800,0,0@10")[0])
+        .unwrap();
+    lane.apply_edit(&edits("push:torso=0,900,0@10")[0]).unwrap();
+    // The refused push never acted: the torso's force this step is the sum of the accepted.
+    lane.advance(&actor, ActionMode::Deterministic).unwrap();
+    let on_torso: Vec<[f64; 3]> = lane
+        .env()
+        .last_pushes()
+        .iter()
+        .filter(|p| p.push.body == "torso")
+        .map(|p| p.push.force)
+        .collect();
+    assert_eq!(
+        on_torso,
+        vec![[800.0, 0.0, 0.0], [-800.0, 0.0, 0.0], [0.0, 900.0, 0.0]]
+    );
+
+    // At most 64 pushes at once, however small.
+    let mut lane = Lane::new(&actor, &world(50), 3).unwrap();
+    for _ in 0..32 {
+        lane.apply_edit(&edits("push:torso=1,0,0@5")[0]).unwrap();
+        lane.apply_edit(&edits("push:torso=-1,0,0@5")[0]).unwrap();
+    }
+    let err = lane
+        .apply_edit(&edits("push:aux_1=1,0,0")[0])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("at most 64"), "{err}");
+}

@@ -15,7 +15,7 @@ pub mod scenario;
 mod settings;
 
 pub use dead::{DeadActuators, DeadCounts, DeadOnset, DeadUnit, MAX_DEAD_UNITS};
-pub use push::{MAX_PUSH_NEWTONS, MAX_PUSH_STEPS, Push, PushError, PushRecord};
+pub use push::{MAX_ACTIVE_PUSHES, MAX_PUSH_NEWTONS, MAX_PUSH_STEPS, Push, PushError, PushRecord};
 pub use settings::{ConditionScales, DamageConfig};
 
 /// Number of actuators in the Ant.

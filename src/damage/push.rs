@@ -12,6 +12,8 @@ use std::str::FromStr;
 pub const MAX_PUSH_NEWTONS: f64 = 1000.0;
 /// The longest a push may act, in env steps (an episode's default length).
 pub const MAX_PUSH_STEPS: usize = 1000;
+/// Pushes acting at once, at most: each is a line in every step's record and stream.
+pub const MAX_ACTIVE_PUSHES: usize = 64;
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PushError {
