@@ -1103,15 +1103,17 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path().join("run");
         let elsewhere = tmp.path().join("cache");
-        let mut opts = options(out.clone(), 200);
-        opts.replay_dir = Some(elsewhere.clone());
-        train(
-            &mut Toy::new(),
-            opts,
-            false,
-            Arc::new(AtomicBool::new(false)),
-        )
-        .unwrap();
+        let run_in = |total: u64, resume: bool| {
+            let mut opts = options(out.clone(), total);
+            opts.replay_dir = Some(elsewhere.clone());
+            train(
+                &mut Toy::new(),
+                opts,
+                resume,
+                Arc::new(AtomicBool::new(false)),
+            )
+        };
+        run_in(200, false).unwrap();
         assert!(elsewhere.join(REPLAY_FILE).exists());
         assert_eq!(state_of(&out).replay_dir, Some(elsewhere.clone()));
 
@@ -1152,15 +1154,7 @@ mod tests {
         std::fs::write(&state_path, text).unwrap();
 
         // Repeated on the command line, the resume restores the buffer there.
-        let mut opts = options(out.clone(), 300);
-        opts.replay_dir = Some(elsewhere.clone());
-        train(
-            &mut Toy::new(),
-            opts,
-            true,
-            Arc::new(AtomicBool::new(false)),
-        )
-        .unwrap();
+        run_in(300, true).unwrap();
         let resume = state_of(&out).resumes.pop().unwrap();
         assert_eq!(resume.buffer, BufferSource::Restored);
     }
