@@ -10,7 +10,7 @@ use std::path::Path;
 fn not_a_file() -> Error {
     Error::new(
         ErrorKind::InvalidInput,
-        "not a regular file (a FIFO, a device or a folder); only files are read",
+        "not a regular file (a FIFO, a device or a folder); only files are read or replaced",
     )
 }
 
@@ -37,6 +37,31 @@ pub fn open_regular(path: &Path) -> std::io::Result<std::fs::File> {
         return Err(not_a_file());
     }
     Ok(file)
+}
+
+/// Creates (or truncates) `path` for writing only if it is, or becomes, a regular file; non-
+/// blocking like [`open_regular`], so a FIFO without a reader at `path` fails at once.
+pub fn create_regular(path: &Path) -> std::io::Result<std::fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)?;
+    if !file.metadata()?.is_file() {
+        return Err(not_a_file());
+    }
+    Ok(file)
+}
+
+/// Whether a new file may be renamed onto `path`: nothing is there, or a regular file (through
+/// symlinks). A FIFO, a device or a folder is never replaced.
+pub fn check_replaceable(path: &Path) -> std::io::Result<()> {
+    match std::fs::metadata(path) {
+        Ok(meta) if !meta.is_file() => Err(not_a_file()),
+        _ => Ok(()),
+    }
 }
 
 /// The whole of a regular file of at most `max` bytes. The length is checked before a byte is

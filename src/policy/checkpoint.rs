@@ -158,34 +158,16 @@ pub struct TrainingRecord {
 /// that is not a regular file is never opened in a way that could block.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), CheckpointError> {
     use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
     let tmp = path.with_extension(format!(
         "{}.tmp",
         path.extension().and_then(|e| e.to_str()).unwrap_or("")
     ));
-    let not_a_file = || {
-        std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            "not a regular file (a FIFO, a device or a folder); only a file is replaced",
-        )
-    };
-    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
-        return Err(CheckpointError::Write {
-            path: path.to_owned(),
-            source: not_a_file(),
-        });
-    }
+    crate::files::check_replaceable(path).map_err(|source| CheckpointError::Write {
+        path: path.to_owned(),
+        source,
+    })?;
     let write = || -> std::io::Result<()> {
-        // Non-blocking: a FIFO left at the temp name without a reader fails at once.
-        let mut file = std::fs::OpenOptions::new()
-            .write(true)
-            .create(true)
-            .truncate(true)
-            .custom_flags(libc::O_NONBLOCK)
-            .open(&tmp)?;
-        if !file.metadata()?.is_file() {
-            return Err(not_a_file());
-        }
+        let mut file = crate::files::create_regular(&tmp)?;
         file.write_all(bytes)?;
         file.sync_all()?;
         std::fs::rename(&tmp, path)
