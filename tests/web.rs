@@ -374,6 +374,16 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             .unwrap();
         assert_eq!(heading, "encoder-lstm");
         assert_eq!(lane_step(&s), 0);
+        // The page says how the web viewer gets the stream (gaitscope::telemetry::WEB_STREAM_BATCH).
+        let note = client
+            .find(Locator::Id("viewer-note"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert!(note.contains("500 ms batches"), "{note}");
+        assert_eq!(s["session"]["viewer_batch_ms"], 500);
 
         // Pause is on: "Step" with 5 advances exactly 5 env steps.
         step_by(&client, 5).await;
@@ -1063,4 +1073,81 @@ fn every_port_checks_host_and_bounds_connections() {
         assert!(Instant::now() < deadline, "Quit ended the session");
         std::thread::sleep(Duration::from_millis(100));
     }
+}
+
+/// The web viewer's newest `step` on screen: the end of the `step` timeline in its active
+/// recording, read from its Viewer Control state (`window._handle.viewer_state()`, protobuf).
+async fn viewer_newest_step(client: &Client) -> Option<i64> {
+    use prost::Message;
+    use re_protos::viewer_control::v1alpha1::GetStateResponse;
+    let bytes = client
+        .execute(
+            "return window._handle ? Array.from(window._handle.viewer_state()) : null;",
+            vec![],
+        )
+        .await
+        .ok()?;
+    let bytes: Vec<u8> = serde_json::from_value(bytes).ok()?;
+    let state = GetStateResponse::decode(bytes.as_slice()).ok()?;
+    state
+        .recordings
+        .iter()
+        .filter(|r| r.store_id.starts_with("Recording:"))
+        .flat_map(|r| &r.timelines)
+        .filter(|t| t.timeline.as_ref().is_some_and(|t| t.name == "step"))
+        .filter_map(|t| t.time_range.map(|r| r.end))
+        .max()
+}
+
+/// The sim's `global_step`, from the control port's `GET /state`.
+fn sim_global_step(port: u16) -> i64 {
+    let answer = raw_http(
+        port,
+        &format!("GET /state HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"),
+    );
+    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    let state: Value = serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {answer}"));
+    state["global_step"].as_i64().unwrap()
+}
+
+/// How far behind the sim the web viewer in headless Chromium runs, over `secs` seconds of a
+/// two-model session at 1×: (seconds since the viewer opened, sim step, viewer's newest step).
+fn web_viewer_lag(extra: &[&str], secs: u64) -> Vec<(f64, i64, i64)> {
+    let mut args = vec!["--compare", "checkpoints/baseline", "--condition", "severe"];
+    args.extend_from_slice(extra);
+    let os: Vec<_> = args.iter().map(std::ffi::OsStr::new).collect();
+    let (_live, [port, ..]) = live_web(&os, Stdio::null());
+    let (_driver, rt, client) = control_page(port);
+    rt.block_on(async move {
+        let s = state(&client).await;
+        let url = s["session"]["viewer_url"].as_str().unwrap().to_string();
+        client.new_window(true).await.unwrap();
+        let handles = client.windows().await.unwrap();
+        client.switch_to_window(handles[1].clone()).await.unwrap();
+        client.goto(&url).await.unwrap();
+        let t0 = Instant::now();
+        let mut samples = Vec::new();
+        while t0.elapsed() < Duration::from_secs(secs) {
+            tokio::time::sleep(Duration::from_secs(5)).await;
+            let shown = viewer_newest_step(&client).await;
+            let sim = sim_global_step(port);
+            let t = t0.elapsed().as_secs_f64();
+            eprintln!("{t:6.1} s: sim step {sim}, viewer's newest step {shown:?}");
+            samples.push((t, sim, shown.unwrap_or(-1)));
+        }
+        client.close().await.unwrap();
+        samples
+    })
+}
+
+/// Prints how far the web viewer falls behind the stream (docs/web.md's figure).
+#[test]
+#[ignore]
+fn web_viewer_latency() {
+    let secs = std::env::var("LAG_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(90);
+    let extra = std::env::var("LAG_ARGS").unwrap_or_default();
+    let extra: Vec<&str> = extra.split_whitespace().collect();
+    let samples = web_viewer_lag(&extra, secs);
+    let last = samples.last().unwrap();
+    eprintln!("after {:.0} s: {} steps behind", last.0, last.1 - last.2);
 }

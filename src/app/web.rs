@@ -497,6 +497,7 @@ impl WebServer {
             "checkpoints": self.checkpoints.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
             "scenarios": crate::damage::scenario::OOD_SUITE.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
             "viewer_url": self.options.viewer_url(),
+            "viewer_batch_ms": crate::telemetry::web_stream_batch().as_millis() as u64,
             "limits": { "min_speed": MIN_SPEED, "max_speed": MAX_SPEED, "max_steps": MAX_STEPS_PER_REQUEST },
         })
     }

@@ -191,6 +191,32 @@ pub enum Sink {
 #[cfg(feature = "web")]
 pub const SERVE_MEMORY_LIMIT_BYTES: u64 = 2 << 30;
 
+/// How often the web stream sends what was logged since, as one batch of chunks. Rerun's
+/// default for live streams (8 ms) makes a chunk per entity per step; a browser painting WebGL
+/// on the CPU (SwiftShader, 2 cores) ingests about 10 steps/s of that and falls behind a 1×
+/// two-model session (20 steps/s) without bound: 710 steps after 90 s. In 0.5 s batches it
+/// keeps up (docs/web.md, "Measured"); a browser with a GPU only sees the Ant move in
+/// half-second strides. `RERUN_FLUSH_TICK_SECS` overrides it, as for any Rerun stream.
+#[cfg(feature = "web")]
+pub const WEB_STREAM_BATCH: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// The web stream's batch period: [`WEB_STREAM_BATCH`], or `RERUN_FLUSH_TICK_SECS` where set
+/// (an explicit batcher config would otherwise skip Rerun's environment overrides).
+#[cfg(feature = "web")]
+pub fn web_stream_batch() -> std::time::Duration {
+    let ours = rerun::log::ChunkBatcherConfig {
+        flush_tick: WEB_STREAM_BATCH,
+        ..rerun::log::ChunkBatcherConfig::LOW_LATENCY
+    };
+    match ours.apply_env() {
+        Ok(config) => config.flush_tick,
+        Err(e) => {
+            log::warn!("{e}; the web stream keeps its {WEB_STREAM_BATCH:?} batches");
+            WEB_STREAM_BATCH
+        }
+    }
+}
+
 fn file_sink_error(path: &std::path::Path, e: impl Into<crate::Cause>) -> TelemetryError {
     TelemetryError::File {
         path: path.to_path_buf(),
@@ -258,8 +284,16 @@ pub fn open_titled(
         Sink::Serve { bind, port, save } => {
             let options = rerun::ServerOptions {
                 memory_limit: rerun::MemoryLimit::from_bytes(SERVE_MEMORY_LIMIT_BYTES),
+                // A viewer that joins late gets the present first and the history behind it,
+                // so its lag does not start at the session's whole length.
+                playback_behavior: rerun::PlaybackBehavior::NewestFirst,
                 ..Default::default()
             };
+            let batching = rerun::log::ChunkBatcherConfig {
+                flush_tick: web_stream_batch(),
+                ..rerun::log::ChunkBatcherConfig::LOW_LATENCY
+            };
+            let builder = builder.batcher_config(batching);
             let server = rerun::grpc_server::GrpcServerSink::new(&bind.to_string(), *port, options)
                 .map_err(|e| TelemetryError::Url {
                     url: format!("{bind}:{port}"),
