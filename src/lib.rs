@@ -20,6 +20,7 @@ pub mod policy;
 pub mod probe;
 pub mod progress;
 pub mod rollout;
+pub mod search;
 pub mod telemetry;
 pub mod train;
 #[cfg(feature = "video")]

@@ -12,6 +12,7 @@ use cli::live::LiveArgs;
 use cli::probe::ProbeArgs;
 use cli::record::{RecordArgs, ViewArgs};
 use cli::rollout::RolloutArgs;
+use cli::search::SearchArgs;
 use cli::train::{CurvesArgs, TrainArgs};
 use cli::video::VideoArgs;
 
@@ -50,6 +51,8 @@ enum Command {
     Video(VideoArgs),
     /// Convert a Stable-Baselines3 SAC archive (model.zip) into a gaitscope checkpoint.
     ImportSb3(ImportSb3Args),
+    /// Find the damage that breaks a policy (or separates two): CMA-ES over damage schedules under a severity budget.
+    Search(SearchArgs),
     /// Measure performance.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -89,6 +92,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::View(args) => cli::record::view_command(args),
         Command::Probe(args) => cli::probe::probe_command(args),
         Command::Explain(args) => cli::explain::explain_command(args),
+        Command::Search(args) => cli::search::search_command(args),
         Command::Bench(command) => cli::bench::bench_command(command),
     }
 }

@@ -9,6 +9,7 @@ pub(crate) mod notes;
 pub mod probe;
 pub mod record;
 pub mod rollout;
+pub mod search;
 pub mod train;
 mod values;
 pub mod video;

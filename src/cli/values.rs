@@ -7,6 +7,7 @@ use gaitscope::explain::Target;
 use gaitscope::policy::sb3::ImportEncoder;
 use gaitscope::policy::{AuxKind, EncoderKind, Privileged};
 use gaitscope::rollout::BuiltinPolicy;
+use gaitscope::search::Method;
 use gaitscope::train::sac::UpdatePath;
 #[cfg(feature = "video")]
 use gaitscope::video::CameraMode;
@@ -128,6 +129,16 @@ mirror! {
         Z,
         /// Each dimension of the deterministic action tanh(μ) (window and current observation).
         Action,
+    }
+}
+
+mirror! {
+    /// `search --method`: how candidates are proposed.
+    MethodArg => Method {
+        /// CMA-ES (the `cmaes` crate): a Gaussian that moves toward the best candidates.
+        Cma,
+        /// Uniform in the space (the reference every search is compared with).
+        Random,
     }
 }
 

@@ -1,0 +1,1204 @@
+//! `gaitscope search`: the damage that breaks a policy, or that separates two, found by
+//! black-box search (CMA-ES, with random search at the same budget as the reference) over
+//! damage schedules ([`space`]) under a severity budget; the best re-run on held-out seeds,
+//! the winner shrunk to a minimal counterexample.
+//!
+//! Every evaluation is one line of `candidates.jsonl` in the output folder, in a fixed order,
+//! so the folder is the state: a killed search re-drives the same deterministic optimiser and
+//! takes each evaluation it already has from the file (checked to be the same candidate).
+
+pub mod space;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use crate::damage::N_ACTUATORS;
+use crate::eval::stats::Rate;
+use space::{GENES, Schedule, Space};
+
+/// Evaluations per search, at most.
+pub const MAX_EVALUATIONS: usize = 100_000;
+/// Episodes per candidate (search seeds) or held-out re-run, at most.
+pub const MAX_EPISODES: usize = 10_000;
+/// Episodes run together in one lockstep batch: fixed, so outcomes do not depend on --threads.
+const LOCKSTEP_CHUNK: usize = 8;
+/// Search seeds start here (eval's seeds are `EVAL_SEED_BASE + i`, i < 100,000): disjoint.
+pub const SEARCH_SEED_BASE: u64 = 2_000_000_000;
+/// candidates.jsonl's size, at most (a line is ~1–20 KB).
+const MAX_LOG_BYTES: u64 = 1 << 30;
+
+#[derive(Debug, thiserror::Error)]
+pub enum SearchError {
+    #[error("invalid search options: {0}")]
+    Options(String),
+    #[error(transparent)]
+    Eval(#[from] crate::eval::EvalError),
+    #[error(transparent)]
+    Checkpoint(#[from] crate::policy::checkpoint::CheckpointError),
+    #[error(transparent)]
+    Scenario(#[from] crate::damage::scenario::ScenarioError),
+    #[error(transparent)]
+    Plot(#[from] crate::plots::PlotError),
+    #[error("{path}: {what}")]
+    Io {
+        path: PathBuf,
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(
+        "{path} holds another search ({differs}): resume only with the same command, or choose \
+         another --out"
+    )]
+    Different { path: PathBuf, differs: String },
+    #[error("{path} line {line}: {reason}")]
+    Corrupt {
+        path: PathBuf,
+        line: usize,
+        reason: String,
+    },
+}
+
+fn io<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(std::io::Error) -> SearchError + 'a {
+    move |source| SearchError::Io {
+        path: path.to_path_buf(),
+        what,
+        source,
+    }
+}
+
+/// What is searched for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Objective {
+    /// Damage under which the (first) model fails: success low, then final distance high.
+    Break,
+    /// Damage under which the first model fails and the second succeeds: success(B) − success(A).
+    Separate,
+}
+
+/// How candidates are proposed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    Cma,
+    Random,
+}
+
+impl Method {
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Cma => "cma",
+            Method::Random => "random",
+        }
+    }
+}
+
+/// One episode of one model under one candidate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeOutcome {
+    pub seed: u64,
+    pub success: bool,
+    pub steps: usize,
+    pub final_distance: f64,
+}
+
+/// Runs schedules: one list of outcomes per model (in the order of [`SearchOptions::models`]),
+/// one outcome per seed, in seed order.
+pub trait Evaluate: Sync {
+    fn joints(&self) -> &[String; N_ACTUATORS];
+    fn evaluate(
+        &self,
+        schedule: &Schedule,
+        seeds: &[u64],
+    ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError>;
+}
+
+/// A model's identity in the log: label, folder, weights' CRC.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelId {
+    pub label: String,
+    pub path: String,
+    pub model_crc32: u32,
+}
+
+/// Everything that decides a search's result (written as search.json; a resume must match).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SearchOptions {
+    /// A, then B for [`Objective::Separate`] (B is the one that should succeed).
+    pub models: Vec<ModelId>,
+    pub objective: Objective,
+    pub method: Method,
+    /// Also run random search at the same budget, as the reference.
+    pub reference: bool,
+    pub severity_budget: f64,
+    pub latest_onset: usize,
+    pub evaluations: usize,
+    pub episodes: usize,
+    pub held_out_episodes: usize,
+    pub held_out_seed_base: u64,
+    pub top: usize,
+    pub shrink_evaluations: usize,
+    pub max_steps: usize,
+    /// The goal's distance at reset, to put final distances on one scale.
+    pub goal_distance: f64,
+    pub seed: u64,
+    pub world: String,
+    pub version: String,
+}
+
+impl SearchOptions {
+    pub fn check(&self) -> Result<(), SearchError> {
+        let bad = |m: String| Err(SearchError::Options(m));
+        if !(self.severity_budget.is_finite()
+            && self.severity_budget > 0.0
+            && self.severity_budget <= space::MAX_SEVERITY)
+        {
+            return bad(format!(
+                "--budget must lie in (0, {}] (Σ(1 − scale) over the joints; 1 = one joint dead), got {}",
+                space::MAX_SEVERITY,
+                self.severity_budget
+            ));
+        }
+        if !(1..=MAX_EVALUATIONS).contains(&self.evaluations) {
+            return bad(format!(
+                "--evaluations must lie in 1..={MAX_EVALUATIONS}, got {}",
+                self.evaluations
+            ));
+        }
+        for (flag, n) in [
+            ("--episodes", self.episodes),
+            ("--held-out", self.held_out_episodes),
+        ] {
+            if !(1..=MAX_EPISODES).contains(&n) {
+                return bad(format!("{flag} must lie in 1..={MAX_EPISODES}, got {n}"));
+            }
+        }
+        if self.top == 0 || self.top > 100 {
+            return bad(format!("--top must lie in 1..=100, got {}", self.top));
+        }
+        if self.max_steps == 0 || self.max_steps > crate::config::MAX_EPISODE_STEPS {
+            return bad(format!(
+                "--max-steps must lie in 1..={}, got {}",
+                crate::config::MAX_EPISODE_STEPS,
+                self.max_steps
+            ));
+        }
+        if self.latest_onset >= self.max_steps {
+            return bad(format!(
+                "--latest-onset ({}) must come before the step limit ({})",
+                self.latest_onset, self.max_steps
+            ));
+        }
+        let want = match self.objective {
+            Objective::Break => 1,
+            Objective::Separate => 2,
+        };
+        if self.models.len() != want {
+            return bad(format!("{:?} needs {want} model(s)", self.objective));
+        }
+        if !(self.goal_distance.is_finite() && self.goal_distance > 0.0) {
+            return bad(format!("goal distance {}", self.goal_distance));
+        }
+        Ok(())
+    }
+
+    fn space(&self) -> Space {
+        Space {
+            severity_budget: self.severity_budget,
+            latest_onset: self.latest_onset,
+        }
+    }
+
+    /// The seeds every candidate runs on (the same for all: paired).
+    pub fn search_seeds(&self) -> Vec<u64> {
+        let base = SEARCH_SEED_BASE + self.seed.wrapping_mul(MAX_EPISODES as u64);
+        (0..self.episodes as u64).map(|i| base + i).collect()
+    }
+
+    pub fn held_out_seeds(&self) -> Vec<u64> {
+        (0..self.held_out_episodes as u64)
+            .map(|i| self.held_out_seed_base + i)
+            .collect()
+    }
+}
+
+/// What the search maximises for one candidate, from its outcomes: for [`Objective::Break`]
+/// failure rate + 0.01 · mean final distance (as a fraction of the goal's, at most 1); for
+/// [`Objective::Separate`] success(B) − success(A) + 0.01 · mean (distance A − distance B) as a
+/// fraction. The distance terms only order candidates with equal success.
+pub fn score(objective: Objective, outcomes: &[Vec<EpisodeOutcome>], goal: f64) -> f64 {
+    let rate = |o: &[EpisodeOutcome]| {
+        o.iter().filter(|e| e.success).count() as f64 / o.len().max(1) as f64
+    };
+    let dist = |o: &[EpisodeOutcome]| {
+        o.iter()
+            .map(|e| (e.final_distance / goal).clamp(0.0, 1.0))
+            .sum::<f64>()
+            / o.len().max(1) as f64
+    };
+    match objective {
+        Objective::Break => (1.0 - rate(&outcomes[0])) + 0.01 * dist(&outcomes[0]),
+        Objective::Separate => {
+            rate(&outcomes[1]) - rate(&outcomes[0])
+                + 0.01 * (dist(&outcomes[0]) - dist(&outcomes[1]))
+        }
+    }
+}
+
+/// The part of the score a shrunk schedule must keep: failure rate, or the success gap.
+fn success_part(objective: Objective, success: &[f64]) -> f64 {
+    match objective {
+        Objective::Break => 1.0 - success[0],
+        Objective::Separate => success[1] - success[0],
+    }
+}
+
+/// Which part of the search an evaluation belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Phase {
+    Search,
+    Reference,
+    HeldOut,
+    Shrink,
+}
+
+/// One line of candidates.jsonl.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Candidate {
+    pub index: usize,
+    pub phase: Phase,
+    pub method: Method,
+    pub schedule: Schedule,
+    pub severity: f64,
+    pub score: f64,
+    /// Success rate per model.
+    pub success: Vec<f64>,
+    pub outcomes: Vec<Vec<EpisodeOutcome>>,
+    pub models: Vec<ModelId>,
+    pub search_seed: u64,
+    pub version: String,
+}
+
+/// The log: what earlier runs evaluated (to replay), and the file new lines go to.
+struct Log {
+    path: PathBuf,
+    done: Vec<Candidate>,
+    next: usize,
+    file: std::fs::File,
+}
+
+impl Log {
+    /// Opens (or starts) candidates.jsonl: every complete line is kept; a torn last line (a kill
+    /// mid-write) is cut off.
+    fn open(path: &Path) -> Result<Self, SearchError> {
+        let mut done = Vec::new();
+        let mut keep = 0u64;
+        if existing(path)?.is_some() {
+            let text = crate::files::read_text_capped(path, MAX_LOG_BYTES)
+                .map_err(io(path, "cannot read"))?;
+            for (i, line) in text.split_inclusive('\n').enumerate() {
+                if !line.ends_with('\n') {
+                    break; // torn: rewritten below
+                }
+                let c: Candidate =
+                    serde_json::from_str(line).map_err(|e| SearchError::Corrupt {
+                        path: path.to_path_buf(),
+                        line: i + 1,
+                        reason: e.to_string(),
+                    })?;
+                if c.index != i {
+                    return Err(SearchError::Corrupt {
+                        path: path.to_path_buf(),
+                        line: i + 1,
+                        reason: format!("index {} where {i} belongs", c.index),
+                    });
+                }
+                keep += line.len() as u64;
+                done.push(c);
+            }
+        }
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .map_err(io(path, "cannot open"))?;
+        file.set_len(keep).map_err(io(path, "cannot truncate"))?;
+        Ok(Log {
+            path: path.to_path_buf(),
+            done,
+            next: 0,
+            file,
+        })
+    }
+
+    fn append(&mut self, c: &Candidate) -> Result<(), SearchError> {
+        let mut line = serde_json::to_string(c).map_err(|e| SearchError::Corrupt {
+            path: self.path.clone(),
+            line: c.index + 1,
+            reason: e.to_string(),
+        })?;
+        line.push('\n');
+        self.file
+            .write_all(line.as_bytes())
+            .map_err(io(&self.path, "cannot write"))
+    }
+}
+
+/// The search in progress: options, the evaluator, the log.
+struct Run<'a> {
+    opts: &'a SearchOptions,
+    evaluator: &'a dyn Evaluate,
+    log: Log,
+    progress: indicatif::ProgressBar,
+}
+
+impl Run<'_> {
+    /// Evaluates (or replays from the log) one schedule on `seeds`.
+    fn evaluate(
+        &mut self,
+        phase: Phase,
+        method: Method,
+        schedule: &Schedule,
+        seeds: &[u64],
+    ) -> Result<Candidate, SearchError> {
+        let index = self.log.next;
+        self.log.next += 1;
+        self.progress.inc(1);
+        if let Some(done) = self.log.done.get(index) {
+            let same = done.phase == phase
+                && done.method == method
+                && done.schedule == *schedule
+                && done.outcomes.iter().all(|o| {
+                    o.len() == seeds.len() && o.iter().zip(seeds).all(|(e, s)| e.seed == *s)
+                });
+            if !same {
+                return Err(SearchError::Different {
+                    path: self.log.path.clone(),
+                    differs: format!(
+                        "evaluation {index} was {:?} {} {:?}, now {phase:?} {} {schedule:?}",
+                        done.phase,
+                        done.method.name(),
+                        done.schedule,
+                        method.name()
+                    ),
+                });
+            }
+            return Ok(done.clone());
+        }
+        let outcomes = self.evaluator.evaluate(schedule, seeds)?;
+        let success = outcomes
+            .iter()
+            .map(|o| o.iter().filter(|e| e.success).count() as f64 / o.len().max(1) as f64)
+            .collect();
+        let c = Candidate {
+            index,
+            phase,
+            method,
+            schedule: schedule.clone(),
+            severity: round9(schedule.severity()),
+            score: score(self.opts.objective, &outcomes, self.opts.goal_distance),
+            success,
+            outcomes,
+            models: self.opts.models.clone(),
+            search_seed: self.opts.seed,
+            version: self.opts.version.clone(),
+        };
+        self.log.append(&c)?;
+        Ok(c)
+    }
+
+    /// `evaluations` candidates from `method`, best first at the end.
+    fn search(&mut self, phase: Phase, method: Method) -> Result<Vec<Candidate>, SearchError> {
+        let seeds = self.opts.search_seeds();
+        let space = self.opts.space();
+        let budget = self.opts.evaluations;
+        let mut found = Vec::with_capacity(budget);
+        match method {
+            Method::Random => {
+                use rand::{Rng, SeedableRng};
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.opts.seed);
+                for _ in 0..budget {
+                    let genome: Vec<f64> = (0..GENES).map(|_| rng.random::<f64>()).collect();
+                    found.push(self.evaluate(phase, method, &space.decode(&genome), &seeds)?);
+                }
+            }
+            Method::Cma => {
+                // CMA-ES from the budget spread evenly over the joints (the largest damage
+                // that needs no scaling down) and onsets mid-range; a run that converges (or
+                // stalls on a flat stretch) before the budget restarts there with the next seed.
+                let even = (self.opts.severity_budget / N_ACTUATORS as f64).min(0.5);
+                let start: Vec<f64> = (0..GENES)
+                    .map(|g| if g < N_ACTUATORS { even } else { 0.5 })
+                    .collect();
+                let mut restart = 0u64;
+                while found.len() < budget {
+                    let mut failure = None;
+                    let cma_seed = self.opts.seed.wrapping_add(restart.wrapping_mul(0x9E37));
+                    let remaining = budget - found.len();
+                    {
+                        let found = &mut found;
+                        let failure = &mut failure;
+                        let this = &mut *self;
+                        let seeds = &seeds;
+                        let objective = move |x: &cmaes::DVector<f64>| -> f64 {
+                            if found.len() >= budget || failure.is_some() {
+                                return 0.0; // past the budget: not evaluated, not logged
+                            }
+                            match this.evaluate(phase, method, &space.decode(x.as_slice()), seeds) {
+                                Ok(c) => {
+                                    let s = c.score;
+                                    found.push(c);
+                                    -s
+                                }
+                                Err(e) => {
+                                    *failure = Some(e);
+                                    0.0
+                                }
+                            }
+                        };
+                        let mut cma = cmaes::CMAESOptions::new(start.clone(), 0.3)
+                            .seed(cma_seed)
+                            .build(objective)
+                            .map_err(|e| SearchError::Options(format!("CMA-ES: {e:?}")))?;
+                        // One generation at a time, until the budget is spent or CMA-ES stops.
+                        while cma.next().is_none() && cma.function_evals() < remaining {}
+                    }
+                    if let Some(e) = failure {
+                        return Err(e);
+                    }
+                    restart += 1;
+                }
+            }
+        }
+        Ok(found)
+    }
+
+    /// Greedy shrinking: take the first single reduction that keeps the failure (its
+    /// success part at least the start's) until none does, or the shrink budget is spent.
+    fn shrink(&mut self, start: &Candidate) -> Result<Shrunk, SearchError> {
+        let seeds = self.opts.search_seeds();
+        let space = self.opts.space();
+        let target = success_part(self.opts.objective, &start.success);
+        let mut current = start.clone();
+        let mut spent = 0;
+        'outer: loop {
+            for reduced in space.reductions(&current.schedule) {
+                if spent >= self.opts.shrink_evaluations {
+                    return Ok(Shrunk {
+                        candidate: current,
+                        evaluations: spent,
+                        minimal: false,
+                    });
+                }
+                spent += 1;
+                let c = self.evaluate(Phase::Shrink, self.opts.method, &reduced, &seeds)?;
+                if success_part(self.opts.objective, &c.success) >= target - 1e-12 {
+                    current = c;
+                    continue 'outer;
+                }
+            }
+            return Ok(Shrunk {
+                candidate: current,
+                evaluations: spent,
+                minimal: true,
+            });
+        }
+    }
+}
+
+/// The file's length, or `None` where nothing is there (a FIFO or a device is an error).
+fn existing(path: &Path) -> Result<Option<u64>, SearchError> {
+    match crate::files::regular_len(path) {
+        Ok(n) => Ok(Some(n)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(source) => Err(SearchError::Io {
+            path: path.to_path_buf(),
+            what: "cannot read",
+            source,
+        }),
+    }
+}
+
+fn round9(x: f64) -> f64 {
+    (x * 1e9).round() / 1e9
+}
+
+/// The shrinker's result.
+#[derive(Debug, Clone)]
+pub struct Shrunk {
+    pub candidate: Candidate,
+    pub evaluations: usize,
+    /// No single reduction keeps the failure (false: the shrink budget ran out first).
+    pub minimal: bool,
+}
+
+/// A top candidate re-run on held-out seeds.
+#[derive(Debug, Clone)]
+pub struct Confirmed {
+    pub name: String,
+    pub search: Candidate,
+    pub held_out: Candidate,
+    /// Success per model on the held-out seeds.
+    pub rates: Vec<Rate>,
+}
+
+/// What a search found.
+#[derive(Debug, Clone)]
+pub struct SearchReport {
+    pub options: SearchOptions,
+    pub joints: [String; N_ACTUATORS],
+    /// Every candidate of the search (and of the reference), in evaluation order.
+    pub searched: Vec<Candidate>,
+    pub reference: Vec<Candidate>,
+    pub top: Vec<Confirmed>,
+    pub reference_best: Option<Confirmed>,
+    pub shrunk: Shrunk,
+    pub shrunk_held_out: Confirmed,
+    /// The files written, for the terminal.
+    pub written: Vec<PathBuf>,
+}
+
+/// The best distinct schedules, best first (ties: less severe, then earlier).
+fn best_distinct(candidates: &[Candidate], n: usize) -> Vec<Candidate> {
+    let mut sorted: Vec<&Candidate> = candidates.iter().collect();
+    sorted.sort_by(|a, b| {
+        b.score
+            .total_cmp(&a.score)
+            .then(a.severity.total_cmp(&b.severity))
+            .then(a.index.cmp(&b.index))
+    });
+    let mut out: Vec<Candidate> = Vec::new();
+    for c in sorted {
+        if out.len() == n {
+            break;
+        }
+        if !out.iter().any(|o| o.schedule == c.schedule) {
+            out.push(c.clone());
+        }
+    }
+    out
+}
+
+/// Runs a search into `out` (created, or resumed if it holds this search): search, reference,
+/// held-out confirmation of the top candidates, shrinking, then the files.
+pub fn run(
+    opts: &SearchOptions,
+    evaluator: &dyn Evaluate,
+    out: &Path,
+) -> Result<SearchReport, SearchError> {
+    opts.check()?;
+    std::fs::create_dir_all(out).map_err(io(out, "cannot create"))?;
+    let options_path = out.join("search.json");
+    let log_path = out.join("candidates.jsonl");
+    let options_json = serde_json::to_string_pretty(opts).map_err(|e| SearchError::Corrupt {
+        path: options_path.clone(),
+        line: 0,
+        reason: e.to_string(),
+    })? + "\n";
+    match existing(&options_path)? {
+        Some(_) => {
+            let text = crate::files::read_text_capped(&options_path, 1 << 20)
+                .map_err(io(&options_path, "cannot read"))?;
+            let theirs: SearchOptions =
+                serde_json::from_str(&text).map_err(|e| SearchError::Corrupt {
+                    path: options_path.clone(),
+                    line: e.line(),
+                    reason: e.to_string(),
+                })?;
+            if theirs != *opts {
+                return Err(SearchError::Different {
+                    path: out.to_path_buf(),
+                    differs: differences(&theirs, opts),
+                });
+            }
+        }
+        None => {
+            if existing(&log_path)?.is_some() {
+                return Err(SearchError::Different {
+                    path: out.to_path_buf(),
+                    differs: "candidates.jsonl without search.json".into(),
+                });
+            }
+            crate::policy::checkpoint::write_atomic(&options_path, options_json.as_bytes())
+                .map_err(|e| SearchError::Options(e.to_string()))?;
+        }
+    }
+    let log = Log::open(&log_path)?;
+    let total = opts.evaluations * (1 + opts.reference as usize)
+        + (opts.top + opts.reference as usize + 1)
+        + opts.shrink_evaluations;
+    let progress = crate::progress::bar(total as u64, "search candidates");
+    let mut run = Run {
+        opts,
+        evaluator,
+        log,
+        progress,
+    };
+    let searched = run.search(Phase::Search, opts.method)?;
+    let reference = if opts.reference {
+        run.search(Phase::Reference, Method::Random)?
+    } else {
+        Vec::new()
+    };
+    let held_out_seeds = opts.held_out_seeds();
+    let confirm = |run: &mut Run, name: String, c: &Candidate| {
+        let held = run.evaluate(Phase::HeldOut, c.method, &c.schedule, &held_out_seeds)?;
+        let rates = held
+            .outcomes
+            .iter()
+            .map(|o| Rate::new(o.iter().filter(|e| e.success).count(), o.len()))
+            .collect();
+        Ok::<_, SearchError>(Confirmed {
+            name,
+            search: c.clone(),
+            held_out: held,
+            rates,
+        })
+    };
+    let mut top = Vec::new();
+    for (i, c) in best_distinct(&searched, opts.top).iter().enumerate() {
+        top.push(confirm(&mut run, format!("top-{}", i + 1), c)?);
+    }
+    let reference_best = match best_distinct(&reference, 1).first() {
+        Some(c) => Some(confirm(&mut run, "reference-best".into(), c)?),
+        None => None,
+    };
+    let shrunk = run.shrink(&top[0].search)?;
+    let shrunk_held_out = confirm(&mut run, "minimal".into(), &shrunk.candidate)?;
+    run.progress.finish_and_clear();
+    let mut report = SearchReport {
+        options: opts.clone(),
+        joints: evaluator.joints().clone(),
+        searched,
+        reference,
+        top,
+        reference_best,
+        shrunk,
+        shrunk_held_out,
+        written: vec![options_path, log_path],
+    };
+    report.written.extend(write_outputs(&report, out)?);
+    Ok(report)
+}
+
+/// Which options differ, by name (for a refused resume).
+fn differences(a: &SearchOptions, b: &SearchOptions) -> String {
+    let (Ok(serde_json::Value::Object(a)), Ok(serde_json::Value::Object(b))) =
+        (serde_json::to_value(a), serde_json::to_value(b))
+    else {
+        return "options".into();
+    };
+    let names: Vec<String> = a
+        .iter()
+        .filter(|(k, v)| b.get(*k) != Some(v))
+        .map(|(k, v)| {
+            format!(
+                "{k}: {v} then, {} now",
+                b.get(k).unwrap_or(&serde_json::Value::Null)
+            )
+        })
+        .collect();
+    names.join("; ")
+}
+
+/// A rate as `25.0 % [12.1, 44.0]`.
+fn pct(r: &Rate) -> String {
+    format!(
+        "{:.1} % [{:.1}, {:.1}]",
+        100.0 * r.rate,
+        100.0 * r.wilson_low,
+        100.0 * r.wilson_high
+    )
+}
+
+/// The scenario files, summary.md and the search curve.
+fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, SearchError> {
+    let o = &report.options;
+    let mut written = Vec::new();
+    let what = match o.objective {
+        Objective::Break => format!("{} fails", o.models[0].label),
+        Objective::Separate => format!(
+            "{} fails where {} succeeds",
+            o.models[0].label, o.models[1].label
+        ),
+    };
+    let confirmed: Vec<&Confirmed> = report
+        .top
+        .iter()
+        .chain(&report.reference_best)
+        .chain(std::iter::once(&report.shrunk_held_out))
+        .collect();
+    for c in &confirmed {
+        let description = format!(
+            "gaitscope search ({}, budget {}): {what}; {}; held-out success {}",
+            c.search.method.name(),
+            o.severity_budget,
+            c.search.schedule.describe(&report.joints),
+            c.rates.iter().map(pct).collect::<Vec<_>>().join(" vs ")
+        );
+        let json = c.search.schedule.scenario_json(
+            &format!("search-{}", c.name),
+            &description,
+            &report.joints,
+        );
+        let path = out.join(format!("{}.json", c.name));
+        let text = serde_json::to_string_pretty(&json).unwrap_or_default() + "\n";
+        crate::policy::checkpoint::write_atomic(&path, text.as_bytes())
+            .map_err(|e| SearchError::Options(e.to_string()))?;
+        written.push(path);
+    }
+    // The curve: best score so far against evaluations, per method.
+    let curve = |cands: &[Candidate]| {
+        let mut best = f64::NEG_INFINITY;
+        cands
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                best = best.max(c.score);
+                ((i + 1) as f64, best)
+            })
+            .collect::<Vec<_>>()
+    };
+    let mut lines = vec![crate::plots::Line {
+        name: o.method.name().into(),
+        colour: 0,
+        points: curve(&report.searched),
+        faint: false,
+    }];
+    if !report.reference.is_empty() {
+        lines.push(crate::plots::Line {
+            name: "random (reference)".into(),
+            colour: 1,
+            points: curve(&report.reference),
+            faint: false,
+        });
+    }
+    let png = out.join("search-curve.png");
+    crate::plots::line_panels(
+        &png,
+        "evaluations",
+        1,
+        &[crate::plots::LinePanel {
+            title: format!("best score so far: {what}"),
+            y_label: "score".into(),
+            lines,
+            y_range: None,
+            legend: Some(plotters::chart::SeriesLabelPosition::LowerRight),
+        }],
+    )?;
+    written.push(png);
+    let mut md = String::new();
+    md.push_str(&format!("# gaitscope search: {what}\n\n"));
+    md.push_str(&format!(
+        "Models: {}. World `{}`. Damage: per joint a scale in [0, 1] from an onset step ≤ {}, \
+         Σ(1 − scale) ≤ {} (fatigue off). {} evaluations of {} by {}{}, each on the same {} \
+         search seeds (from {}), step limit {}. Score: {}. The top {} re-run on {} held-out seeds \
+         (from {}: `gaitscope eval --scenario FILE --episodes {} --seed {} --max-steps {}` gives \
+         the same episodes).\n\n",
+        o.models
+            .iter()
+            .map(|m| format!("`{}` ({:08x})", m.label, m.model_crc32))
+            .collect::<Vec<_>>()
+            .join(", "),
+        o.world,
+        o.latest_onset,
+        o.severity_budget,
+        o.evaluations,
+        report.searched.len(),
+        o.method.name(),
+        if o.reference {
+            ", and as many by random search (the reference)"
+        } else {
+            ""
+        },
+        o.episodes,
+        o.search_seeds().first().copied().unwrap_or(0),
+        o.max_steps,
+        match o.objective {
+            Objective::Break => "failure rate + 0.01 × mean final distance / goal distance",
+            Objective::Separate => {
+                "success(B) − success(A) + 0.01 × mean (distance A − distance B) / goal distance"
+            }
+        },
+        report.top.len(),
+        o.held_out_episodes,
+        o.held_out_seed_base,
+        o.held_out_episodes,
+        o.held_out_seed_base,
+        o.max_steps,
+    ));
+    md.push_str("| file | method | damage (joint scale @ onset) | severity | score | search success | held-out success |\n|---|---|---|---:|---:|---|---|\n");
+    for c in &confirmed {
+        md.push_str(&format!(
+            "| `{}.json` | {} | {} | {:.3} | {:.3} | {} | {} |\n",
+            c.name,
+            if c.name == "minimal" {
+                "shrunk".into()
+            } else {
+                c.search.method.name().to_string()
+            },
+            c.search.schedule.describe(&report.joints),
+            c.search.severity,
+            c.search.score,
+            c.search
+                .success
+                .iter()
+                .map(|s| format!("{:.1} %", 100.0 * s))
+                .collect::<Vec<_>>()
+                .join(" vs "),
+            c.rates.iter().map(pct).collect::<Vec<_>>().join(" vs "),
+        ));
+    }
+    let best = |c: &[Candidate]| c.iter().map(|c| c.score).fold(f64::NEG_INFINITY, f64::max);
+    md.push_str(&format!(
+        "\nSuccess is per model ({}). Search success is on the seeds the search chose by, so it is \
+         biased toward failure (the winner's curse); the held-out column is the estimate, with 95 % \
+         Wilson intervals.\n\nBest score: {} {:.3}{}.\n\n",
+        o.models
+            .iter()
+            .map(|m| m.label.as_str())
+            .collect::<Vec<_>>()
+            .join(" vs "),
+        o.method.name(),
+        best(&report.searched),
+        if report.reference.is_empty() {
+            String::new()
+        } else {
+            format!(", random {:.3}", best(&report.reference))
+        }
+    ));
+    md.push_str(&format!(
+        "**Minimal counterexample** (`minimal.json`): {} after {} shrink evaluations{}, from top-1's {}.\n\n",
+        report.shrunk.candidate.schedule.describe(&report.joints),
+        report.shrunk.evaluations,
+        if report.shrunk.minimal {
+            ": no single further reduction (drop a joint, raise a scale by 0.1, a later onset) keeps the failure"
+        } else {
+            " (the shrink budget ran out: it may shrink further)"
+        },
+        report.top[0].search.schedule.describe(&report.joints),
+    ));
+    md.push_str("![best score against evaluations, per method](search-curve.png)\n");
+    let path = out.join("summary.md");
+    crate::policy::checkpoint::write_atomic(&path, md.as_bytes())
+        .map_err(|e| SearchError::Options(e.to_string()))?;
+    written.push(path);
+    Ok(written)
+}
+
+/// Checkpoints acting under schedules: each schedule becomes a scenario, and each model runs
+/// it in its own world on the seeds, in lockstep batches, through eval's stepping.
+pub struct PolicyEvaluator {
+    actors: Vec<(String, crate::lane::Actor)>,
+    joints: [String; N_ACTUATORS],
+    max_steps: usize,
+    pool: rayon::ThreadPool,
+}
+
+impl PolicyEvaluator {
+    pub fn new(
+        models: &[(String, PathBuf)],
+        max_steps: usize,
+        threads: usize,
+    ) -> Result<Self, SearchError> {
+        let mut actors = Vec::new();
+        for (label, dir) in models {
+            let policy = crate::policy::Policy::load(dir, None)?;
+            actors.push((label.clone(), crate::lane::Actor::from_policy(dir, policy)));
+        }
+        let world = actors[0].1.world(&crate::config::GaitConfig::default());
+        let env = crate::env::AntEnv::new(world, 0).map_err(crate::eval::EvalError::Env)?;
+        let joints = env.damage().joint_names().clone();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .build()
+            .map_err(|e| SearchError::Options(format!("thread pool: {e}")))?;
+        Ok(PolicyEvaluator {
+            actors,
+            joints,
+            max_steps,
+            pool,
+        })
+    }
+
+    /// The first model's world: its goal distance and name.
+    pub fn world(&self) -> crate::config::GaitConfig {
+        self.actors[0]
+            .1
+            .world(&crate::config::GaitConfig::default())
+    }
+}
+
+impl Evaluate for PolicyEvaluator {
+    fn joints(&self) -> &[String; N_ACTUATORS] {
+        &self.joints
+    }
+
+    fn evaluate(
+        &self,
+        schedule: &Schedule,
+        seeds: &[u64],
+    ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
+        let json = schedule.scenario_json("search-candidate", "", &self.joints);
+        let scenario =
+            crate::damage::scenario::Scenario::from_json(&json.to_string(), "search candidate")?;
+        let mut requested = crate::config::GaitConfig::default();
+        // As in eval: a scenario's fatigue rule names no condition, so severe; fatigue is off.
+        requested.damage.condition =
+            crate::damage::ConditionChoice::Fixed(crate::damage::Condition::Severe);
+        requested.damage.scenario = Some(scenario);
+        requested.env.max_episode_steps = self.max_steps;
+        let case = crate::eval::Case::scenario("search-candidate");
+        let mut all = Vec::new();
+        for (label, actor) in &self.actors {
+            let config = actor.world(&requested);
+            let batches: Vec<Result<Vec<crate::eval::EpisodeRecord>, crate::eval::EvalError>> =
+                self.pool.install(|| {
+                    seeds
+                        .par_chunks(LOCKSTEP_CHUNK)
+                        .map(|chunk| {
+                            crate::eval::run_lockstep(actor, label, &config, case, chunk, 0)
+                        })
+                        .collect()
+                });
+            let mut outcomes = Vec::with_capacity(seeds.len());
+            for batch in batches {
+                outcomes.extend(batch?.into_iter().map(|r| EpisodeOutcome {
+                    seed: r.seed,
+                    success: r.success,
+                    steps: r.steps,
+                    final_distance: round9(r.final_distance),
+                }));
+            }
+            all.push(outcomes);
+        }
+        Ok(all)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    const HIP_2: usize = 4; // actuator order: hip_4, ankle_4, hip_1, ankle_1, hip_2, …
+
+    /// A planted failure: every episode fails exactly when hip_2 runs below 0.3 from before
+    /// step 50; otherwise it succeeds, ending nearer the goal the less hip_2 is damaged and the
+    /// later (a slope for the distance tie-break, as a real policy's would be).
+    struct Planted {
+        joints: [String; N_ACTUATORS],
+        calls: AtomicUsize,
+    }
+
+    impl Planted {
+        fn new() -> Self {
+            Planted {
+                joints: [
+                    "hip_4", "ankle_4", "hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3",
+                ]
+                .map(String::from),
+                calls: AtomicUsize::new(0),
+            }
+        }
+        fn fails(s: &Schedule) -> bool {
+            s.scales[HIP_2] < 0.3 && s.onsets[HIP_2] < 50
+        }
+    }
+
+    impl Evaluate for Planted {
+        fn joints(&self) -> &[String; N_ACTUATORS] {
+            &self.joints
+        }
+        fn evaluate(
+            &self,
+            s: &Schedule,
+            seeds: &[u64],
+        ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
+            self.calls.fetch_add(1, Ordering::SeqCst);
+            let fail = Self::fails(s);
+            let d = 3.0 * (1.0 - s.scales[HIP_2]) * (1.0 - s.onsets[HIP_2] as f64 / 101.0);
+            Ok(vec![
+                seeds
+                    .iter()
+                    .map(|&seed| EpisodeOutcome {
+                        seed,
+                        success: !fail,
+                        steps: 100,
+                        final_distance: round9(d),
+                    })
+                    .collect(),
+            ])
+        }
+    }
+
+    fn options(method: Method, evaluations: usize) -> SearchOptions {
+        SearchOptions {
+            models: vec![ModelId {
+                label: "planted".into(),
+                path: "-".into(),
+                model_crc32: 0,
+            }],
+            objective: Objective::Break,
+            method,
+            reference: false,
+            severity_budget: 1.0,
+            latest_onset: 100,
+            evaluations,
+            episodes: 2,
+            held_out_episodes: 4,
+            held_out_seed_base: 7,
+            top: 2,
+            shrink_evaluations: 200,
+            max_steps: 500,
+            goal_distance: 7.07,
+            seed: 3,
+            world: "paper".into(),
+            version: "test".into(),
+        }
+    }
+
+    /// The first evaluation (1-based) that found the planted failure, if any.
+    fn first_hit(found: &[Candidate]) -> Option<usize> {
+        found
+            .iter()
+            .position(|c| c.success[0] == 0.0)
+            .map(|i| i + 1)
+    }
+
+    #[test]
+    fn cma_finds_the_planted_failure_and_random_search_does_not() {
+        let budget = 500;
+        let mut hits = Vec::new();
+        for method in [Method::Cma, Method::Random] {
+            let dir = tempfile::tempdir().unwrap();
+            let planted = Planted::new();
+            let report = run(&options(method, budget), &planted, dir.path()).unwrap();
+            // The budget is spent exactly, never exceeded.
+            assert_eq!(report.searched.len(), budget);
+            assert!(report.searched.iter().all(|c| c.severity <= 1.0 + 1e-9));
+            hits.push(first_hit(&report.searched));
+            if method == Method::Cma {
+                let best = &report.top[0];
+                assert!(Planted::fails(&best.search.schedule), "{best:?}");
+                assert_eq!(best.rates[0].successes, 0);
+                // Shrunk: still fails, and no single further reduction does.
+                let shrunk = &report.shrunk;
+                assert!(shrunk.minimal);
+                let s = &shrunk.candidate.schedule;
+                assert!(Planted::fails(s), "{s:?}");
+                assert_eq!(s.damaged().collect::<Vec<_>>(), vec![HIP_2], "{s:?}");
+                for r in options(method, budget).space().reductions(s) {
+                    assert!(!Planted::fails(&r), "{r:?} still fails");
+                }
+                // Every evaluation is one line, in order.
+                let lines = std::fs::read_to_string(dir.path().join("candidates.jsonl")).unwrap();
+                assert_eq!(lines.lines().count(), planted.calls.load(Ordering::SeqCst));
+            }
+        }
+        eprintln!(
+            "planted failure first found at evaluation: cma {:?}, random {:?}",
+            hits[0], hits[1]
+        );
+        let cma = hits[0].expect("CMA-ES found the planted failure");
+        assert!(hits[1].is_none_or(|r| r > cma), "{hits:?}");
+    }
+
+    #[test]
+    fn a_killed_search_resumes_to_the_same_files() {
+        let whole = tempfile::tempdir().unwrap();
+        let opts = SearchOptions {
+            reference: true,
+            ..options(Method::Cma, 40)
+        };
+        let planted = Planted::new();
+        run(&opts, &planted, whole.path()).unwrap();
+        let all = planted.calls.load(Ordering::SeqCst);
+        let log = std::fs::read_to_string(whole.path().join("candidates.jsonl")).unwrap();
+        // Killed after 30 evaluations, in the middle of writing the 31st line.
+        let resumed = tempfile::tempdir().unwrap();
+        let kept: String = log.split_inclusive('\n').take(30).collect();
+        let torn = &log.split_inclusive('\n').nth(30).unwrap()[..50];
+        std::fs::write(resumed.path().join("candidates.jsonl"), kept + torn).unwrap();
+        std::fs::copy(
+            whole.path().join("search.json"),
+            resumed.path().join("search.json"),
+        )
+        .unwrap();
+        let again = Planted::new();
+        run(&opts, &again, resumed.path()).unwrap();
+        assert_eq!(again.calls.load(Ordering::SeqCst), all - 30);
+        for file in [
+            "candidates.jsonl",
+            "summary.md",
+            "top-1.json",
+            "minimal.json",
+            "search.json",
+        ] {
+            assert_eq!(
+                std::fs::read(whole.path().join(file)).unwrap(),
+                std::fs::read(resumed.path().join(file)).unwrap(),
+                "{file}"
+            );
+        }
+        // Another search in the same folder is refused, naming what differs.
+        let other = SearchOptions {
+            severity_budget: 2.0,
+            ..opts.clone()
+        };
+        let err = run(&other, &Planted::new(), resumed.path()).unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("severity_budget: 1.0 then, 2.0 now"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn bad_options_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        for (opts, says) in [
+            (
+                SearchOptions {
+                    severity_budget: f64::NAN,
+                    ..options(Method::Cma, 5)
+                },
+                "--budget must lie in (0, 8]",
+            ),
+            (
+                SearchOptions {
+                    severity_budget: 9.0,
+                    ..options(Method::Cma, 5)
+                },
+                "--budget",
+            ),
+            (options(Method::Cma, 0), "--evaluations must lie in 1..="),
+            (
+                SearchOptions {
+                    latest_onset: 500,
+                    ..options(Method::Cma, 5)
+                },
+                "--latest-onset (500) must come before the step limit (500)",
+            ),
+            (
+                SearchOptions {
+                    objective: Objective::Separate,
+                    ..options(Method::Cma, 5)
+                },
+                "needs 2 model(s)",
+            ),
+        ] {
+            let err = run(&opts, &Planted::new(), dir.path()).unwrap_err();
+            assert!(err.to_string().contains(says), "{err}");
+        }
+        // A FIFO where the log belongs is refused, not waited on.
+        let fifo_dir = tempfile::tempdir().unwrap();
+        crate::files::mkfifo(&fifo_dir.path().join("candidates.jsonl"));
+        let err = run(&options(Method::Cma, 5), &Planted::new(), fifo_dir.path()).unwrap_err();
+        assert!(err.to_string().contains("candidates.jsonl"), "{err}");
+    }
+}

@@ -1,0 +1,215 @@
+//! `gaitscope search` on a real checkpoint, end to end: the files, byte-identical reruns
+//! (whatever the thread count), a kill -9 resumed to the same result, written scenarios that
+//! `eval --scenario` replays to the same episodes, and refused bad input.
+
+use serde_json::Value;
+use std::path::Path;
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+const ARGS: [&str; 18] = [
+    "search",
+    "--checkpoint",
+    "checkpoints/baseline",
+    "--evaluations",
+    "6",
+    "--episodes",
+    "4",
+    "--held-out",
+    "6",
+    "--top",
+    "2",
+    "--shrink-evaluations",
+    "4",
+    "--max-steps",
+    "150",
+    "--latest-onset",
+    "40",
+    "--budget=1.5",
+];
+
+fn gaitscope(args: &[&str]) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_gaitscope"));
+    c.current_dir(env!("CARGO_MANIFEST_DIR")).args(args);
+    c
+}
+
+fn search(out: &Path, threads: &str) -> Output {
+    let o = gaitscope(&ARGS)
+        .args(["--threads", threads, "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
+fn lines(path: &Path) -> Vec<Value> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+#[test]
+fn a_search_writes_replayable_scenarios_and_reruns_byte_for_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    search(&a, "2");
+    search(&b, "1");
+    for f in [
+        "candidates.jsonl",
+        "summary.md",
+        "top-1.json",
+        "minimal.json",
+        "search.json",
+    ] {
+        assert_eq!(
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(b.join(f)).unwrap(),
+            "{f} differs between a 2-thread and a 1-thread run"
+        );
+    }
+    let log = lines(&a.join("candidates.jsonl"));
+    let phase = |p: &str| log.iter().filter(|c| c["phase"] == p).count();
+    // The budget: 6 searched, 6 random, 2 + 1 + 1 held-out, at most 4 shrink.
+    assert_eq!(phase("search"), 6);
+    assert_eq!(phase("reference"), 6);
+    assert_eq!(phase("held-out"), 4);
+    assert!(phase("shrink") <= 4);
+    for c in &log {
+        assert!(c["severity"].as_f64().unwrap() <= 1.5 + 1e-9, "{c}");
+        assert_eq!(c["models"][0]["label"], "baseline");
+    }
+    // top-1.json replays under eval --scenario to the held-out episodes, seed for seed.
+    let top: Value =
+        serde_json::from_str(&std::fs::read_to_string(a.join("top-1.json")).unwrap()).unwrap();
+    assert_eq!(top["fatigue"], false);
+    let held = log.iter().find(|c| c["phase"] == "held-out").unwrap();
+    assert_eq!(
+        held["schedule"]["scales"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|s| s.as_f64().unwrap() < 1.0)
+            .count(),
+        top["edits"].as_array().unwrap().len()
+    );
+    let eval_dir = dir.path().join("eval");
+    let o = gaitscope(&[
+        "eval",
+        "--checkpoint",
+        "checkpoints/baseline",
+        "--scenario",
+        a.join("top-1.json").to_str().unwrap(),
+        "--conditions",
+        "healthy",
+        "--episodes",
+        "6",
+        "--max-steps",
+        "150",
+        "--out",
+        eval_dir.to_str().unwrap(),
+    ])
+    .output()
+    .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let eval: Value =
+        serde_json::from_str(&std::fs::read_to_string(eval_dir.join("eval.json")).unwrap())
+            .unwrap();
+    let replayed: Vec<(u64, bool, u64)> = eval["episodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["condition"] == "search-top-1")
+        .map(|e| {
+            (
+                e["seed"].as_u64().unwrap(),
+                e["success"].as_bool().unwrap(),
+                e["steps"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    let searched: Vec<(u64, bool, u64)> = held["outcomes"][0]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            (
+                e["seed"].as_u64().unwrap(),
+                e["success"].as_bool().unwrap(),
+                e["steps"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(replayed, searched);
+    let summary = std::fs::read_to_string(a.join("summary.md")).unwrap();
+    assert!(summary.contains("| `top-1.json` | cma |"), "{summary}");
+    assert!(
+        summary.contains("`reference-best.json` | random"),
+        "{summary}"
+    );
+    assert!(a.join("search-curve.png").exists());
+
+    // Killed (SIGKILL) once a few candidates are in, then run again: the same files.
+    let c = dir.path().join("c");
+    let mut child = gaitscope(&ARGS)
+        .args(["--threads", "1", "--out", c.to_str().unwrap()])
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while std::fs::read_to_string(c.join("candidates.jsonl")).map_or(0, |t| t.lines().count()) < 3 {
+        assert!(Instant::now() < deadline, "no candidates after 120 s");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    search(&c, "2");
+    for f in ["candidates.jsonl", "summary.md", "minimal.json"] {
+        assert_eq!(
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(c.join(f)).unwrap(),
+            "{f} after a kill and a resume"
+        );
+    }
+}
+
+#[test]
+fn bad_search_input_is_refused_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("x");
+    let out = out.to_str().unwrap();
+    for (args, says) in [
+        (vec!["--budget", "0"], "--budget must lie in (0, 8]"),
+        (vec!["--budget", "nan"], "--budget must lie in (0, 8]"),
+        (vec!["--evaluations", "0"], "--evaluations must lie in 1..="),
+        (
+            vec!["--latest-onset", "600"],
+            "must come before the step limit",
+        ),
+        (vec!["--reverse"], "--against"),
+        (
+            vec!["--method", "annealing"],
+            "possible values: cma, random",
+        ),
+    ] {
+        let o = gaitscope(&[
+            "search",
+            "--checkpoint",
+            "checkpoints/baseline",
+            "--out",
+            out,
+        ])
+        .args(&args)
+        .output()
+        .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(says), "{args:?}: {err}");
+    }
+    let o = gaitscope(&["search", "--checkpoint", "/nonexistent", "--out", out])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("/nonexistent"));
+}
