@@ -16,6 +16,7 @@ const LAYERS: &[&[&str]] = &[
     &["rollout", "eval", "explain"],
     &["probe"],
     &["telemetry"],
+    &["search"],
     &["video", "app"],
     &["bench"],
     // The binary's front door (src/main.rs, src/cli/): it reads the library through

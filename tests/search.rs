@@ -2,6 +2,8 @@
 //! (whatever the thread count), a kill -9 resumed to the same result, written scenarios that
 //! `eval --scenario` replays to the same episodes, and refused bad input.
 
+mod common;
+
 use serde_json::Value;
 use std::path::Path;
 use std::process::{Command, Output};
@@ -65,8 +67,8 @@ fn a_search_writes_replayable_scenarios_and_reruns_byte_for_byte() {
         "search.json",
     ] {
         assert_eq!(
-            std::fs::read(a.join(f)).unwrap(),
-            std::fs::read(b.join(f)).unwrap(),
+            std::fs::read_to_string(a.join(f)).unwrap(),
+            std::fs::read_to_string(b.join(f)).unwrap(),
             "{f} differs between a 2-thread and a 1-thread run"
         );
     }
@@ -150,6 +152,21 @@ fn a_search_writes_replayable_scenarios_and_reruns_byte_for_byte() {
         "{summary}"
     );
     assert!(a.join("search-curve.png").exists());
+    // worst.rrd: top-1's worst held-out episode, its scenario's edits as damage events, one per
+    // damaged joint, each at its onset's step.
+    let events = common::text_log(&common::read_rrd(&a.join("worst.rrd")), "/ant/events");
+    let edits = events
+        .iter()
+        .filter(|(_, t)| t.contains("scenario search-top-1:"))
+        .count();
+    assert_eq!(edits, top["edits"].as_array().unwrap().len(), "{events:?}");
+    let worst_seed: u64 = summary
+        .split("worst held-out episode (seed ")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .and_then(|s| s.parse().ok())
+        .unwrap();
+    assert!(searched.iter().any(|(s, ..)| *s == worst_seed));
 
     // Killed (SIGKILL) once a few candidates are in, then run again: the same files.
     let c = dir.path().join("c");
@@ -168,8 +185,8 @@ fn a_search_writes_replayable_scenarios_and_reruns_byte_for_byte() {
     search(&c, "2");
     for f in ["candidates.jsonl", "summary.md", "minimal.json"] {
         assert_eq!(
-            std::fs::read(a.join(f)).unwrap(),
-            std::fs::read(c.join(f)).unwrap(),
+            std::fs::read_to_string(a.join(f)).unwrap(),
+            std::fs::read_to_string(c.join(f)).unwrap(),
             "{f} after a kill and a resume"
         );
     }

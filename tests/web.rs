@@ -1144,7 +1144,10 @@ fn web_viewer_lag(extra: &[&str], secs: u64) -> Vec<(f64, i64, i64)> {
 #[test]
 #[ignore]
 fn web_viewer_latency() {
-    let secs = std::env::var("LAG_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(90);
+    let secs = std::env::var("LAG_SECS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(90);
     let extra = std::env::var("LAG_ARGS").unwrap_or_default();
     let extra: Vec<&str> = extra.split_whitespace().collect();
     let samples = web_viewer_lag(&extra, secs);

@@ -45,6 +45,19 @@ pub(crate) enum BenchCommand {
         #[arg(long, default_value_t = 100)]
         episodes: usize,
     },
+    /// Search throughput: candidates and episodes per second of `gaitscope search` (CMA-ES,
+    /// severity budget 1, no reference, no shrinking) on one checkpoint.
+    Search {
+        #[arg(long, value_name = "DIR", default_value = "checkpoints/baseline")]
+        checkpoint: PathBuf,
+        #[arg(long, default_value_t = 48)]
+        evaluations: usize,
+        /// Episodes per candidate.
+        #[arg(long, default_value_t = 16)]
+        episodes: usize,
+        #[arg(long, default_value_t = 1)]
+        threads: usize,
+    },
     /// Training env steps/s per encoder (one update per step) against the updates alone.
     Train {
         /// Learning steps to time per encoder (after a 1,000-step random warm-up).
@@ -133,6 +146,69 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
                 report.episodes.len(),
                 if threads == 1 { "" } else { "s" },
                 report.episodes.len() as f64 / secs,
+                steps as f64 / secs
+            );
+            Ok(())
+        }
+        BenchCommand::Search {
+            checkpoint,
+            evaluations,
+            episodes,
+            threads,
+        } => {
+            use gaitscope::search;
+            let label = gaitscope::eval::model_label(&checkpoint);
+            let evaluator =
+                search::PolicyEvaluator::new(&[(label.clone(), checkpoint.clone())], 500, threads)?;
+            let world = evaluator.world();
+            let opts = search::SearchOptions {
+                models: vec![search::ModelId {
+                    label,
+                    path: checkpoint.display().to_string(),
+                    model_crc32: gaitscope::policy::checkpoint::read_meta(&checkpoint)?.model_crc32,
+                }],
+                objective: search::Objective::Break,
+                method: search::Method::Cma,
+                reference: false,
+                severity_budget: 1.0,
+                latest_onset: 100,
+                evaluations,
+                episodes,
+                held_out_episodes: episodes,
+                held_out_seed_base: gaitscope::eval::EVAL_SEED_BASE,
+                top: 1,
+                shrink_evaluations: 0,
+                max_steps: 500,
+                goal_distance: world.env.goal[0].hypot(world.env.goal[1]),
+                seed: 0,
+                world: world.world.to_string(),
+                version: env!("CARGO_PKG_VERSION").to_string(),
+            };
+            let scratch =
+                std::env::temp_dir().join(format!("gaitscope-bench-search-{}", std::process::id()));
+            let started = std::time::Instant::now();
+            let report = search::run(&opts, &evaluator, &scratch);
+            let secs = started.elapsed().as_secs_f64();
+            let _ = std::fs::remove_dir_all(&scratch);
+            let report = report?;
+            let all: Vec<&search::Candidate> = report
+                .searched
+                .iter()
+                .chain(report.top.iter().map(|c| &c.held_out))
+                .collect();
+            let episodes: usize = all.iter().map(|c| c.outcomes[0].len()).sum();
+            let steps: usize = all
+                .iter()
+                .flat_map(|c| &c.outcomes[0])
+                .map(|e| e.steps)
+                .sum();
+            println!(
+                "{} candidates ({episodes} episodes, {steps} env steps) in {secs:.1} s on {threads} \
+                 thread{}: {:.2} candidates/s, {:.1} episodes/s, {:.0} env steps/s",
+                all.len(),
+                if threads == 1 { "" } else { "s" },
+                all.len() as f64 / secs,
+                episodes as f64 / secs,
                 steps as f64 / secs
             );
             Ok(())

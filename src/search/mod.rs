@@ -41,6 +41,8 @@ pub enum SearchError {
     Scenario(#[from] crate::damage::scenario::ScenarioError),
     #[error(transparent)]
     Plot(#[from] crate::plots::PlotError),
+    #[error(transparent)]
+    Record(#[from] crate::telemetry::RecordError),
     #[error("{path}: {what}")]
     Io {
         path: PathBuf,
@@ -114,6 +116,19 @@ pub trait Evaluate: Sync {
         schedule: &Schedule,
         seeds: &[u64],
     ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError>;
+
+    /// Records one episode of every model under `scenario` (a scenario file's JSON) from
+    /// `seed` to `path`, with `caption` under the recording's key; `None` where this evaluator
+    /// has nothing to record (a synthetic one).
+    fn record(
+        &self,
+        _scenario: &serde_json::Value,
+        _seed: u64,
+        _path: &Path,
+        _caption: &str,
+    ) -> Result<Option<PathBuf>, SearchError> {
+        Ok(None)
+    }
 }
 
 /// A model's identity in the log: label, folder, weights' CRC.
@@ -558,6 +573,8 @@ pub struct SearchReport {
     pub reference_best: Option<Confirmed>,
     pub shrunk: Shrunk,
     pub shrunk_held_out: Confirmed,
+    /// The recording of top-1's worst held-out episode, and its seed.
+    pub worst: Option<(PathBuf, u64)>,
     /// The files written, for the terminal.
     pub written: Vec<PathBuf>,
 }
@@ -670,6 +687,7 @@ pub fn run(
     let shrunk = run.shrink(&top[0].search)?;
     let shrunk_held_out = confirm(&mut run, "minimal".into(), &shrunk.candidate)?;
     run.progress.finish_and_clear();
+    let worst = record_worst(opts, evaluator, &top[0], out)?;
     let mut report = SearchReport {
         options: opts.clone(),
         joints: evaluator.joints().clone(),
@@ -679,10 +697,65 @@ pub fn run(
         reference_best,
         shrunk,
         shrunk_held_out,
+        worst: worst.clone(),
         written: vec![options_path, log_path],
     };
     report.written.extend(write_outputs(&report, out)?);
+    report.written.extend(worst.map(|(path, _)| path));
     Ok(report)
+}
+
+/// Top-1's worst held-out episode (for [`Objective::Break`]: a failure, farthest from the goal;
+/// for [`Objective::Separate`]: A failing where B succeeds, A farthest), recorded to worst.rrd
+/// with the scenario's edits as damage events on its timeline.
+fn record_worst(
+    opts: &SearchOptions,
+    evaluator: &dyn Evaluate,
+    top: &Confirmed,
+    out: &Path,
+) -> Result<Option<(PathBuf, u64)>, SearchError> {
+    let held = &top.held_out.outcomes;
+    let worst = (0..held[0].len())
+        .max_by(|&i, &j| {
+            let rank = |k: usize| {
+                let a = &held[0][k];
+                let separated = held.get(1).is_none_or(|b| b[k].success);
+                (!a.success && separated, !a.success, a.final_distance)
+            };
+            let (ri, rj) = (rank(i), rank(j));
+            ri.0.cmp(&rj.0)
+                .then(ri.1.cmp(&rj.1))
+                .then(ri.2.total_cmp(&rj.2))
+                .then(j.cmp(&i))
+        })
+        .map(|k| held[0][k].seed);
+    let Some(seed) = worst else {
+        return Ok(None);
+    };
+    let joints = evaluator.joints();
+    let scenario = top
+        .search
+        .schedule
+        .scenario_json(&format!("search-{}", top.name), "", joints);
+    let caption = format!(
+        "Seed {seed}, the worst of top-1's {} held-out episodes under `{}.json` \
+         ({}), found by `gaitscope search` ({}, budget {}). Held-out success: {}.",
+        held[0].len(),
+        top.name,
+        top.search.schedule.describe(joints),
+        top.search.method.name(),
+        opts.severity_budget,
+        opts.models
+            .iter()
+            .zip(&top.rates)
+            .map(|(m, r)| format!("{} {}", m.label, pct(r)))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let path = out.join("worst.rrd");
+    Ok(evaluator
+        .record(&scenario, seed, &path, &caption)?
+        .map(|p| (p, seed)))
 }
 
 /// Which options differ, by name (for a refused resume).
@@ -882,6 +955,12 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         },
         report.top[0].search.schedule.describe(&report.joints),
     ));
+    if let Some((_, seed)) = &report.worst {
+        md.push_str(&format!(
+            "`worst.rrd`: top-1's worst held-out episode (seed {seed}), every model side by side, \
+             the scenario's edits as damage events (open it with `gaitscope view`).\n\n"
+        ));
+    }
     md.push_str("![best score against evaluations, per method](search-curve.png)\n");
     let path = out.join("summary.md");
     crate::policy::checkpoint::write_atomic(&path, md.as_bytes())
@@ -936,6 +1015,35 @@ impl PolicyEvaluator {
 impl Evaluate for PolicyEvaluator {
     fn joints(&self) -> &[String; N_ACTUATORS] {
         &self.joints
+    }
+
+    fn record(
+        &self,
+        scenario: &serde_json::Value,
+        seed: u64,
+        path: &Path,
+        caption: &str,
+    ) -> Result<Option<PathBuf>, SearchError> {
+        let name = scenario["name"].as_str().unwrap_or("search");
+        let scenario = crate::damage::scenario::Scenario::from_json(&scenario.to_string(), name)?;
+        let mut config = crate::config::GaitConfig::default();
+        config.damage.condition =
+            crate::damage::ConditionChoice::Fixed(crate::damage::Condition::Severe);
+        config.damage.scenario = Some(scenario);
+        config.env.max_episode_steps = self.max_steps;
+        let opts = crate::telemetry::RecordOptions {
+            actors: self.actors.iter().map(|(_, a)| a.clone()).collect(),
+            config,
+            episodes: 1,
+            seed,
+            sink: crate::telemetry::Sink::File(path.to_path_buf()),
+            fork: None,
+            start: None,
+            attribution: false,
+            caption: Some(caption.to_string()),
+        };
+        crate::telemetry::record(opts, &std::sync::atomic::AtomicBool::new(false))?;
+        Ok(Some(path.to_path_buf()))
     }
 
     fn evaluate(

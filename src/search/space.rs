@@ -112,8 +112,8 @@ impl Space {
             let steps = (d / SCALE_STEP + 1e-9).floor();
             schedule.scales[i] = round_scale(1.0 - steps * SCALE_STEP);
             let onset = genome.get(N_ACTUATORS + i).copied().map_or(0.0, reflect);
-            schedule.onsets[i] = ((onset * (self.latest_onset + 1) as f64).floor() as usize)
-                .min(self.latest_onset);
+            schedule.onsets[i] =
+                ((onset * (self.latest_onset + 1) as f64).floor() as usize).min(self.latest_onset);
         }
         schedule
     }

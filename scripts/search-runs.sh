@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Issue 48's report: `gaitscope search` on the committed paper-world models, one search after
+# another, each into docs/results/search/<name>/ (the folder is the state: a second start
+# resumes a killed search and skips finished ones). Runs the binary copied at start, so a
+# rebuild does not change it mid-way.
+#
+#   scripts/search-runs.sh [NAME...]   # all searches, or the named ones
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+cd "$root"
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/gaitscope/target}"
+cargo build --release --quiet
+mkdir -p .deps/search-runs
+bin=.deps/search-runs/gaitscope
+cp "$CARGO_TARGET_DIR/release/gaitscope" "$bin"
+out=docs/results/search
+common=(--evaluations 150 --episodes 16 --held-out 100 --top 3 --shrink-evaluations 60 --seed 0)
+
+# name, then the search's own flags
+searches=(
+  "baseline-k1|--checkpoint checkpoints/baseline --budget 1"
+  "encoder-lstm-k1|--checkpoint checkpoints/encoder-lstm --budget 1"
+  "lstm-fails-baseline-succeeds-k1|--checkpoint checkpoints/encoder-lstm --against checkpoints/baseline --budget 1"
+  "baseline-fails-lstm-succeeds-k1|--checkpoint checkpoints/baseline --against checkpoints/encoder-lstm --budget 1"
+  "baseline-k2|--checkpoint checkpoints/baseline --budget 2"
+  "encoder-lstm-k2|--checkpoint checkpoints/encoder-lstm --budget 2"
+  "baseline-k3|--checkpoint checkpoints/baseline --budget 3"
+  "encoder-lstm-k3|--checkpoint checkpoints/encoder-lstm --budget 3"
+)
+for entry in "${searches[@]}"; do
+  name=${entry%%|*}
+  if [ $# -gt 0 ] && [[ " $* " != *" $name "* ]]; then continue; fi
+  [ -f "$out/$name/summary.md" ] && { echo "done: $name"; continue; }
+  echo "search: $name"
+  # shellcheck disable=SC2086
+  "$bin" search ${entry#*|} "${common[@]}" --out "$out/$name" > /dev/null
+done
