@@ -573,6 +573,8 @@ pub struct SearchReport {
     pub reference_best: Option<Confirmed>,
     pub shrunk: Shrunk,
     pub shrunk_held_out: Confirmed,
+    /// Success per model on the held-out seeds with no damage (the reference for the rest).
+    pub undamaged: Vec<Rate>,
     /// The recording of top-1's worst held-out episode, and its seed.
     pub worst: Option<(PathBuf, u64)>,
     /// The files written, for the terminal.
@@ -646,7 +648,7 @@ pub fn run(
     }
     let log = Log::open(&log_path)?;
     let total = opts.evaluations * (1 + opts.reference as usize)
-        + (opts.top + opts.reference as usize + 1)
+        + (opts.top + opts.reference as usize + 2)
         + opts.shrink_evaluations;
     let progress = crate::progress::bar(total as u64, "search candidates");
     let mut run = Run {
@@ -686,6 +688,18 @@ pub fn run(
     };
     let shrunk = run.shrink(&top[0].search)?;
     let shrunk_held_out = confirm(&mut run, "minimal".into(), &shrunk.candidate)?;
+    // The same held-out seeds with no damage at all: what each model does anyway.
+    let undamaged = run.evaluate(
+        Phase::HeldOut,
+        opts.method,
+        &Schedule::healthy(),
+        &held_out_seeds,
+    )?;
+    let undamaged = undamaged
+        .outcomes
+        .iter()
+        .map(|o| Rate::new(o.iter().filter(|e| e.success).count(), o.len()))
+        .collect();
     run.progress.finish_and_clear();
     let worst = record_worst(opts, evaluator, &top[0], out)?;
     let mut report = SearchReport {
@@ -697,6 +711,7 @@ pub fn run(
         reference_best,
         shrunk,
         shrunk_held_out,
+        undamaged,
         worst: worst.clone(),
         written: vec![options_path, log_path],
     };
@@ -926,6 +941,10 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
             c.rates.iter().map(pct).collect::<Vec<_>>().join(" vs "),
         ));
     }
+    md.push_str(&format!(
+        "| (no damage) | – | – | 0 | – | – | {} |\n",
+        report.undamaged.iter().map(pct).collect::<Vec<_>>().join(" vs ")
+    ));
     let best = |c: &[Candidate]| c.iter().map(|c| c.score).fold(f64::NEG_INFINITY, f64::max);
     md.push_str(&format!(
         "\nSuccess is per model ({}). Search success is on the seeds the search chose by, so it is \
