@@ -1154,3 +1154,42 @@ fn web_viewer_latency() {
     let last = samples.last().unwrap();
     eprintln!("after {:.0} s: {} steps behind", last.0, last.1 - last.2);
 }
+
+/// Layout changes (here the attribution view, on and off) leave no thread behind: each distinct
+/// layout is built once (issue 49: 1,000 toggles had grown the process from 24 to 6,030
+/// threads).
+#[test]
+fn toggling_views_leaves_no_threads_behind() {
+    let (mut live, [port, _, _]) = live_web(&[std::ffi::OsStr::new("--paused")], Stdio::piped());
+    let pid = live.0.id();
+    let threads = || {
+        std::fs::read_dir(format!("/proc/{pid}/task"))
+            .unwrap()
+            .count()
+    };
+    let toggle = |on: bool| {
+        let answer = post(
+            port,
+            &format!(r#"{{"command": "attribution", "on": {on}}}"#),
+        );
+        assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
+    };
+    // Both layouts built once, then counted.
+    toggle(true);
+    toggle(false);
+    std::thread::sleep(Duration::from_millis(500));
+    let before = threads();
+    for i in 0..100 {
+        toggle(i % 2 == 0);
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let after = threads();
+    eprintln!("threads {before} → {after} after 100 toggles");
+    assert!(
+        after <= before + 4,
+        "threads {before} → {after} after 100 toggles"
+    );
+    let _ = post(port, r#"{"command": "quit"}"#);
+    let (status, _) = wait_exit(&mut live, "quit");
+    assert!(status.success());
+}

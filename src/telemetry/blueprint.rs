@@ -269,6 +269,50 @@ pub fn send_layout_for(
     plot_roots: &[String],
     attribution: bool,
 ) -> Result<(), TelemetryError> {
+    let key = format!("{world_roots:?} {titles:?} {plot_roots:?} {attribution}");
+    let cached = LAYOUTS.lock().ok().and_then(|cache| {
+        cache
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map(|(_, v)| v.clone())
+    });
+    let (messages, activation) = match cached {
+        Some(built) => built,
+        None => {
+            let built = build_layout(world_roots, titles, plot_roots, attribution)?;
+            if let Ok(mut cache) = LAYOUTS.lock()
+                && cache.len() < MAX_CACHED_LAYOUTS
+            {
+                cache.push((key, built.clone()));
+            }
+            built
+        }
+    };
+    rec.send_blueprint(messages, activation);
+    Ok(())
+}
+
+/// A built layout: the blueprint store's messages and the command that activates it.
+type BuiltLayout = (
+    Vec<rerun::log::LogMsg>,
+    rerun::external::re_log_msg::BlueprintActivationCommand,
+);
+
+/// Layouts built so far, by their inputs. Rerun builds a blueprint's messages on a memory
+/// stream of its own (`Blueprint::to_log_msgs`) whose sink holds the stream, so it never drops:
+/// each build leaves a recording thread and a batcher thread behind. `live` sends a layout on
+/// every view change (attribution, fork, compare), a handful of distinct ones per session, so
+/// each is built once and sent again from here (issue 49: 1,000 toggles had left 6,000 threads).
+static LAYOUTS: std::sync::Mutex<Vec<(String, BuiltLayout)>> = std::sync::Mutex::new(Vec::new());
+/// Distinct layouts kept, at most (beyond it each new one is built afresh).
+const MAX_CACHED_LAYOUTS: usize = 64;
+
+fn build_layout(
+    world_roots: &[String],
+    titles: &[String],
+    plot_roots: &[String],
+    attribution: bool,
+) -> Result<BuiltLayout, TelemetryError> {
     use rerun::log::LogMsg;
     let layout = layout_for(world_roots, titles, plot_roots, attribution);
     let (scratch, storage) = RecordingStreamBuilder::new(APP_ID).memory()?;
@@ -289,6 +333,10 @@ pub fn send_layout_for(
             _ => {} // the scratch recording's own store info
         }
     }
+    // A memory stream's sink holds a handle to the stream itself, so it would never drop (nor
+    // end its two threads): swapping the sink out breaks that cycle.
+    scratch.disconnect();
+    drop((scratch, storage));
     let activation = activation.ok_or(TelemetryError::NoBlueprintActivation)?;
     let (props, props_storage) =
         RecordingStreamBuilder::from_store_id(&activation.blueprint_id).memory()?;
@@ -303,6 +351,35 @@ pub fn send_layout_for(
             .into_iter()
             .filter(|m| matches!(m, LogMsg::ArrowMsg(..))),
     );
-    rec.send_blueprint(messages, activation);
-    Ok(())
+    props.disconnect();
+    drop((props, props_storage));
+    Ok((messages, activation))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn threads() -> usize {
+        std::fs::read_dir("/proc/self/task").map_or(0, |d| d.count())
+    }
+
+    #[test]
+    fn sending_a_layout_leaves_no_thread_behind() {
+        let (rec, _storage) = RecordingStreamBuilder::new(APP_ID).memory().unwrap();
+        let roots = vec!["ant".to_string()];
+        send_layout(&rec, &roots).unwrap();
+        let before = threads();
+        for i in 0..20 {
+            send_layout_for(&rec, &roots, &default_titles(&roots), &roots, i % 2 == 0).unwrap();
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+        let after = threads();
+        eprintln!("threads: {before} → {after} after 20 layouts");
+        // The one new layout (with attribution) is built once: two threads of Rerun's own.
+        assert!(
+            after <= before + 2,
+            "threads: {before} → {after} after 20 layouts"
+        );
+    }
 }
