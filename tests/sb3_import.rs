@@ -247,11 +247,6 @@ fn peak_memory(mut cmd: std::process::Command) -> (i32, f64) {
 fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
     let lstm = std::fs::read(fixture("sb3_lstm.zip")).unwrap();
     let baseline = std::fs::read(fixture("sb3_baseline.zip")).unwrap();
-    let in_policy = |zip: &[u8], edit: &dyn Fn(Vec<u8>) -> Vec<u8>| {
-        rewrite_entry(zip, "policy.pth", |pth| {
-            rewrite_entry(&pth, "data.pkl", edit)
-        })
-    };
     let nan_weights = |zip: &[u8]| {
         rewrite_entry(zip, "policy.pth", |pth| {
             rewrite_entry(&pth, "data/0", |mut raw| {
@@ -377,6 +372,14 @@ fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
             "grows past 4000000 parts",
         ),
         (
+            // A storage record cut short (its location and size dropped): candle's reader
+            // panics on it; the panic is caught and reported in one line (issue 49 #12).
+            "short storage tuple",
+            short_storage_tuple(&baseline),
+            ImportEncoder::Auto,
+            "the pickle reader failed on it",
+        ),
+        (
             // A zip bomb: policy.pth inflates to 300 MB of zeros from a few hundred KB.
             "zip bomb",
             {
@@ -449,6 +452,50 @@ fn broken_archives_are_refused_with_their_reason_and_leave_nothing() {
         std::fs::read_to_string(out.join("keep.txt")).unwrap(),
         "mine"
     );
+}
+
+/// The archive with policy.pth's pickle edited.
+fn in_policy(zip: &[u8], edit: &dyn Fn(Vec<u8>) -> Vec<u8>) -> Vec<u8> {
+    rewrite_entry(zip, "policy.pth", |pth| {
+        rewrite_entry(&pth, "data.pkl", edit)
+    })
+}
+
+/// The baseline archive with its first storage record, `('storage', FloatStorage, key, 'cpu',
+/// numel)`, cut to its first four items.
+fn short_storage_tuple(archive: &[u8]) -> Vec<u8> {
+    in_policy(archive, &|pkl| {
+        let cpu = &b"X\x03\x00\x00\x00cpu"[..];
+        // After 'cpu' and its memo slot (BINPUT n): the size (BININT2), then TUPLE.
+        let from = pkl.windows(cpu.len()).position(|w| w == cpu).unwrap() + cpu.len() + 2;
+        assert_eq!(pkl[from], b'M', "a BININT2 size");
+        [&pkl[..from], &pkl[from + 3..]].concat()
+    })
+}
+
+/// A panic inside the third-party pickle reader reaches the user as one error line: no panic
+/// message, no backtrace, whatever RUST_BACKTRACE says.
+#[test]
+fn a_parser_panic_is_one_clear_line() {
+    let baseline = std::fs::read(fixture("sb3_baseline.zip")).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let zip = tmp.path().join("model.zip");
+    std::fs::write(&zip, short_storage_tuple(&baseline)).unwrap();
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["import-sb3", "--out"])
+        .arg(tmp.path().join("out"))
+        .arg(&zip)
+        .env("RUST_BACKTRACE", "1")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("the pickle reader failed on it"), "{err}");
+    assert!(
+        !err.contains("panicked at") && !err.contains("backtrace"),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
 }
 
 #[test]

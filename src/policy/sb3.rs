@@ -336,12 +336,36 @@ const MAX_TENSOR_ELEMENTS: usize = 16 << 20;
 
 /// Runs a dependency's reader on untrusted bytes: a panic in it is this archive's error, not
 /// the process's end.
+thread_local! {
+    /// Set while this thread runs third-party parsing whose panics we catch and report.
+    static CATCHING: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f`, catching a panic without the panic hook printing it (message and backtrace) first:
+/// the caller turns it into one clear error line. Only panics on this thread while `f` runs are
+/// kept quiet; every other panic reaches the hook that was installed before.
+fn quietly<T>(f: impl FnOnce() -> T) -> std::thread::Result<T> {
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !CATCHING.with(|c| c.get()) {
+                previous(info);
+            }
+        }));
+    });
+    CATCHING.with(|c| c.set(true));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    CATCHING.with(|c| c.set(false));
+    result
+}
+
 fn guarded<T>(
     archive: &Archive,
     what: &'static str,
     read: impl FnOnce() -> candle_core::Result<T>,
 ) -> Result<T, Sb3Error> {
-    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(read)) {
+    match quietly(read) {
         Ok(result) => result.map_err(|source| Sb3Error::Pickle {
             path: archive.path.clone(),
             what,
