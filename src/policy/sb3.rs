@@ -334,8 +334,6 @@ const MAX_ENTRY_BYTES: u64 = 256 << 20;
 /// The most elements one tensor may declare (a 256 × 256 layer has 65,536).
 const MAX_TENSOR_ELEMENTS: usize = 16 << 20;
 
-/// Runs a dependency's reader on untrusted bytes: a panic in it is this archive's error, not
-/// the process's end.
 thread_local! {
     /// Set while this thread runs third-party parsing whose panics we catch and report.
     static CATCHING: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
@@ -360,6 +358,8 @@ fn quietly<T>(f: impl FnOnce() -> T) -> std::thread::Result<T> {
     result
 }
 
+/// Runs a dependency's reader on untrusted bytes: a panic in it is this archive's error, not
+/// the process's end.
 fn guarded<T>(
     archive: &Archive,
     what: &'static str,
