@@ -220,10 +220,29 @@ fn bad_state_files_are_clear_errors() {
             &|v: &mut Value| v["qacc_warmstart"] = Value::Null,
             "qacc_warmstart",
         ),
+        (
+            // A goal this far made the reward infinite (issue 49 #9).
+            &|v: &mut Value| v["goal_distance"] = 1e308.into(),
+            "goal_distance is 100000000000000000000000000000000",
+        ),
+        (
+            &|v: &mut Value| v["qvel"][3] = 1e300.into(),
+            "qvel[3] is 1000000000000000",
+        ),
+        (
+            &|v: &mut Value| v["torso_xy"][1] = (-2e4).into(),
+            "torso_xy[1] is -20000, expected a number in [-10000, 10000]",
+        ),
     ] {
         let err = with(edit);
         assert!(err.contains(reason), "{reason}: {err}");
     }
+    // A key given twice is refused, not the last one kept.
+    let twice = dir.path().join("twice.json");
+    let text = std::fs::read_to_string(&file).unwrap();
+    std::fs::write(&twice, text.replacen('{', r#"{"seed": 5, "#, 1)).unwrap();
+    let err = from_state(&twice).unwrap_err();
+    assert!(err.contains("duplicate key \"seed\""), "{err}");
     // A saved state brings its condition; another one is refused, not silently mixed.
     let err = rollout(&[
         "--checkpoint",
@@ -287,4 +306,43 @@ fn a_recording_starts_from_a_saved_state() {
             assert!((a - b).abs() < 1e-9, "step {}: {a} vs {b}", K + t);
         }
     }
+}
+
+/// Another model than the one that saved a state may start from it, with a warning that says
+/// so; a fork before the state's step says where the episode
+/// starts instead of calling it "beyond the episode".
+#[test]
+fn a_state_names_who_saved_it_and_where_it_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, file) = saved_episode(dir.path());
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args(["rollout", "--max-steps", "60", "--jsonl", "--checkpoint"])
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/checkpoints/baseline"))
+        .arg("--init-state")
+        .arg(&file)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("the state was saved with encoder-lstm acting; baseline acts from it now"),
+        "{err}"
+    );
+    let err = rollout(&[
+        "--checkpoint",
+        CHECKPOINT,
+        "--init-state",
+        file.to_str().unwrap(),
+        "--fork-at",
+        "10",
+        "--fork",
+        "heal:all",
+    ])
+    .unwrap_err();
+    assert!(
+        err.contains(&format!(
+            "--fork-at 10 comes before step {K}, where this episode starts"
+        )),
+        "{err}"
+    );
 }

@@ -137,15 +137,15 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
         None => bundled_checkpoint()?,
     };
     let config = args.env.load()?;
+    let mut actors = Vec::new();
+    for dir in std::iter::once(&checkpoint).chain(&args.compare) {
+        actors.push(gaitscope::lane::Actor::load(dir)?);
+    }
     let seed = match (args.seed, args.condition) {
         (Some(seed), _) => seed,
         // By hand, nothing is typical: a person breaks what they like.
         (None, app::LiveCondition::Manual) => 0,
         (None, condition) => {
-            let mut actors = Vec::new();
-            for dir in std::iter::once(&checkpoint).chain(&args.compare) {
-                actors.push(gaitscope::lane::Actor::load(dir)?);
-            }
             let mut typical = config.clone();
             typical.env.max_episode_steps = args.max_steps;
             typical.damage.condition = gaitscope::ConditionChoice::Fixed(condition.env_condition());
@@ -170,7 +170,7 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
         )?,
         fork: fork_option(args.fork_at, args.fork.as_deref())?,
         config,
-        start: super::start_state(args.init_state.as_deref())?,
+        start: super::start_state(args.init_state.as_deref(), &actors)?,
         attribution: args.attribution,
     };
     // Check what can be checked before any window opens: the input first, then the display.

@@ -88,13 +88,22 @@ pub(crate) fn fork_option(
 }
 
 /// `--init-state FILE`, read and checked before anything starts.
+/// `--init-state`'s file, read and checked, with a warning for each model it does not fit
+/// as saved (another model saved it, a window of another length).
 pub(crate) fn start_state(
     path: Option<&std::path::Path>,
+    actors: &[gaitscope::lane::Actor],
 ) -> Result<Option<gaitscope::lane::StartState>> {
-    Ok(match path {
-        Some(p) => Some(gaitscope::rollout::read_init_state(p)?),
-        None => None,
-    })
+    let Some(p) = path else {
+        return Ok(None);
+    };
+    let state = gaitscope::rollout::read_init_state(p)?;
+    for actor in actors {
+        for note in state.notes_for(actor) {
+            log::warn!("{}: {note}", p.display());
+        }
+    }
+    Ok(Some(state))
 }
 
 /// `--suite`'s long help: each built-in scenario with its one-line description.

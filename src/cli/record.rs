@@ -89,6 +89,7 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
         args.env.note_unused(actor, &config);
     }
     let (seed, caption) = super::demo_seed(args.seed, &actors, &config)?;
+    let start = super::start_state(args.init_state.as_deref(), &actors)?;
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
     ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))
@@ -100,7 +101,7 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
         seed,
         sink: Sink::File(args.out.clone()),
         fork: fork_option(args.fork_at, args.fork.as_deref())?,
-        start: super::start_state(args.init_state.as_deref())?,
+        start,
         attribution: args.attribution,
         caption,
     };

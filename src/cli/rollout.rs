@@ -116,10 +116,7 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
         args.env.note_unused(&actor, &config);
         let fork = fork_option(args.fork_at, args.fork.as_deref())?;
         let save_at = save_state_option(args.save_state_at.as_deref())?;
-        let init = match &args.init_state {
-            Some(path) => Some(rollout::read_init_state(path)?),
-            None => None,
-        };
+        let init = super::start_state(args.init_state.as_deref(), std::slice::from_ref(&actor))?;
         // From a given state there is one episode to run (--episodes conflicts with it).
         let episodes = if init.is_some() { 1 } else { episodes };
         for episode in 0..episodes {

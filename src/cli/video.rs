@@ -109,7 +109,7 @@ pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
         config,
         seed,
         fork: super::fork_option(args.fork_at, args.fork.as_deref())?,
-        start: super::start_state(args.init_state.as_deref())?,
+        start: super::start_state(args.init_state.as_deref(), &actors)?,
     })?;
     let secs = started.elapsed().as_secs_f64();
     for ending in &summary.endings {

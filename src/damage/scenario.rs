@@ -64,6 +64,12 @@ fn read_capped(path: &Path) -> std::io::Result<String> {
     Ok(text)
 }
 
+/// Parses JSON, refusing an object key given twice at any depth (serde_json keeps the last one
+/// silently): scenarios and saved states both read through it.
+pub fn strict_json(text: &str) -> Result<Value, serde_json::Error> {
+    serde_json::from_str::<StrictValue>(text).map(|v| v.0)
+}
+
 /// A JSON value that refuses duplicate object keys.
 struct StrictValue(Value);
 
@@ -443,9 +449,7 @@ impl Scenario {
             )));
         }
         // Duplicate keys are refused (serde_json would keep the last one silently).
-        let source: Value = serde_json::from_str::<StrictValue>(text)
-            .map_err(|e| invalid(e.to_string()))?
-            .0;
+        let source = strict_json(text).map_err(|e| invalid(e.to_string()))?;
         let edit_count = source["edits"].as_array().map_or(0, Vec::len);
         if edit_count > MAX_SCENARIO_EDITS {
             return Err(invalid(format!(

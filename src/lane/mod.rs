@@ -333,14 +333,36 @@ pub struct Fork {
     pub edits: Vec<Edit>,
 }
 
-/// A fork whose step never came: the episode ended first. The one such error of every
-/// front-end (rollout, record, video, live).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-#[error("--fork-at {at} is beyond the episode, which ended after {steps} steps")]
+/// A fork whose step never came: the episode ended first, or started after it (from a saved
+/// state). The one such error of every front-end (rollout, record, video, live).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ForkBeyondEpisode {
     pub at: usize,
     pub steps: usize,
+    /// The step the episode started at.
+    pub first_step: usize,
 }
+
+impl std::fmt::Display for ForkBeyondEpisode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.at < self.first_step {
+            write!(
+                f,
+                "--fork-at {} comes before step {}, where this episode starts (its saved state's \
+                 step): fork at {} or later",
+                self.at, self.first_step, self.first_step
+            )
+        } else {
+            write!(
+                f,
+                "--fork-at {} is beyond the episode, which ended after {} steps",
+                self.at, self.steps
+            )
+        }
+    }
+}
+
+impl std::error::Error for ForkBeyondEpisode {}
 
 impl Fork {
     /// The one fork rule: a fork branches off `lane` while its episode runs, before step `at`.
@@ -353,6 +375,7 @@ impl Fork {
         ForkBeyondEpisode {
             at: self.at,
             steps: lane.steps(),
+            first_step: lane.first_step(),
         }
     }
 
@@ -387,6 +410,8 @@ struct Run {
     rng: ChaCha8Rng,
     last: Option<StepRecord>,
     done: bool,
+    /// The step this episode started at: 0, or a saved state's step.
+    first_step: usize,
 }
 
 impl LaneState {
@@ -420,18 +445,25 @@ impl Lane {
             rng: policy_rng(seed),
             last: None,
             done: true,
+            first_step: 0,
         };
         Ok(Self { env, run })
     }
 
     /// A new episode from `seed` (the actor's RNG re-seeded from it too, so an episode is
     /// reproducible on its own).
+    /// The step this episode started at: 0, or its saved state's step.
+    pub fn first_step(&self) -> usize {
+        self.run.first_step
+    }
+
     pub fn reset(&mut self, seed: u64) {
         self.run.obs = self.env.reset_with_seed(seed);
         self.run.window.clear();
         self.run.rng = policy_rng(seed);
         self.run.last = None;
         self.run.done = false;
+        self.run.first_step = 0;
     }
 
     /// A new episode from a given state (`rollout --init-state`).
@@ -445,6 +477,7 @@ impl Lane {
         self.run.window.clear();
         self.run.last = None;
         self.run.done = false;
+        self.run.first_step = 0;
         Ok(())
     }
 

@@ -32,6 +32,13 @@ pub enum StateFileError {
     },
 }
 
+/// A saved episode's clock, at most (the longest episode is far shorter).
+const MAX_STATE_TIME_S: f64 = 1e6;
+/// The farthest a saved torso or goal may be, in metres.
+const MAX_STATE_DISTANCE_M: f64 = 1e4;
+/// Positions, velocities and the solver's warm start, in absolute value at most.
+const MAX_STATE_MAGNITUDE: f64 = 1e6;
+
 /// The policy's context window at the saved step: its filled entries, oldest first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -110,6 +117,34 @@ impl SavedState {
 }
 
 impl StartState {
+    /// What a person should know before `actor` starts from this state: another model saved it,
+    /// or its window is of another length (the model then starts with an empty window).
+    pub fn notes_for(&self, actor: &super::Actor) -> Vec<String> {
+        let StartState::Saved(saved) = self else {
+            return Vec::new();
+        };
+        let mut notes = Vec::new();
+        let acting = actor.label();
+        if let Some(saver) = &saved.checkpoint
+            && *saver != acting
+        {
+            notes.push(format!(
+                "the state was saved with {saver} acting; {acting} acts from it now"
+            ));
+        }
+        if let Some(w) = &saved.window
+            && w.len != actor.context_len()
+        {
+            notes.push(format!(
+                "the state's window holds {} steps' context, {acting} reads {}: it starts with an \
+                 empty window",
+                w.len,
+                actor.context_len()
+            ));
+        }
+        notes
+    }
+
     /// Reads a state file: a saved state (it declares `"format"`) or a bare one.
     pub fn read(path: &Path) -> Result<Self, StateFileError> {
         use std::io::Read;
@@ -131,7 +166,7 @@ impl StartState {
         if text.len() as u64 > MAX_STATE_BYTES {
             return Err(format!("more than {MAX_STATE_BYTES} bytes"));
         }
-        let value: serde_json::Value = serde_json::from_str(text).map_err(|e| e.to_string())?;
+        let value = crate::damage::scenario::strict_json(text).map_err(|e| e.to_string())?;
         let state = if value.get("format").is_some() {
             // serde's messages through `flatten` name no field: the lists and the damage
             // object are checked by name first.
@@ -155,6 +190,50 @@ impl StartState {
                     .find(|k| !known.contains_key(*k) && !omitted.contains(&k.as_str()))
             {
                 return Err(format!("unknown field `{k}`"));
+            }
+            // Every number the env takes as it is, bounded: a goal 1e308 m away made the reward
+            // infinite (issue 49).
+            let env = &saved.env;
+            let bounded = [
+                ("time", env.time, 0.0, MAX_STATE_TIME_S),
+                (
+                    "goal_distance",
+                    env.goal_distance,
+                    0.0,
+                    MAX_STATE_DISTANCE_M,
+                ),
+                (
+                    "torso_xy[0]",
+                    env.torso_xy[0],
+                    -MAX_STATE_DISTANCE_M,
+                    MAX_STATE_DISTANCE_M,
+                ),
+                (
+                    "torso_xy[1]",
+                    env.torso_xy[1],
+                    -MAX_STATE_DISTANCE_M,
+                    MAX_STATE_DISTANCE_M,
+                ),
+            ];
+            for (name, x, lo, hi) in bounded {
+                if !(x.is_finite() && (lo..=hi).contains(&x)) {
+                    return Err(format!("{name} is {x}, expected a number in [{lo}, {hi}]"));
+                }
+            }
+            for (name, list) in [
+                ("qpos", &env.qpos),
+                ("qvel", &env.qvel),
+                ("qacc_warmstart", &env.qacc_warmstart),
+            ] {
+                if let Some((i, x)) = list
+                    .iter()
+                    .enumerate()
+                    .find(|(_, x)| !(x.is_finite() && x.abs() <= MAX_STATE_MAGNITUDE))
+                {
+                    return Err(format!(
+                        "{name}[{i}] is {x}, expected a finite number within ±{MAX_STATE_MAGNITUDE}"
+                    ));
+                }
             }
             if saved.format != STATE_FORMAT {
                 return Err(format!(
@@ -272,6 +351,7 @@ impl Lane {
                 self.run.rng = policy_rng(saved.seed);
                 self.run.last = None;
                 self.run.done = false;
+                self.run.first_step = saved.env.step;
                 let restored = match &saved.window {
                     Some(w) if w.len == self.run.window.len() => {
                         let obs_dim = crate::env::OBS_DIM;

@@ -943,7 +943,12 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
     }
     md.push_str(&format!(
         "| (no damage) | – | – | 0 | – | – | {} |\n",
-        report.undamaged.iter().map(pct).collect::<Vec<_>>().join(" vs ")
+        report
+            .undamaged
+            .iter()
+            .map(pct)
+            .collect::<Vec<_>>()
+            .join(" vs ")
     ));
     let best = |c: &[Candidate]| c.iter().map(|c| c.score).fold(f64::NEG_INFINITY, f64::max);
     md.push_str(&format!(
