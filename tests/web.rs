@@ -1174,6 +1174,15 @@ fn toggling_views_leaves_no_threads_behind() {
         );
         assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
     };
+    // The guard answers before the server behind it is up: wait for that.
+    let deadline = Instant::now() + WAIT;
+    while post(port, r#"{"command": "pause"}"#).starts_with("HTTP/1.1 502") {
+        assert!(
+            Instant::now() < deadline,
+            "the control server never came up"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
     // Both layouts built once, then counted.
     toggle(true);
     toggle(false);
@@ -1189,6 +1198,71 @@ fn toggling_views_leaves_no_threads_behind() {
         after <= before + 4,
         "threads {before} → {after} after 100 toggles"
     );
+    let _ = post(port, r#"{"command": "quit"}"#);
+    let (status, _) = wait_exit(&mut live, "quit");
+    assert!(status.success());
+}
+
+/// Commands are JSON by media type (not by prefix), from this server's own page when a browser
+/// names one, with exactly their fields; Host names are case-insensitive (issue 49 #10).
+#[test]
+fn commands_are_checked_by_type_origin_and_fields() {
+    let (mut live, [port, _, _]) = live_web(&[std::ffi::OsStr::new("--paused")], Stdio::piped());
+    let send = |headers: &str, body: &str| {
+        raw_http(
+            port,
+            &format!(
+                "POST /command HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n{headers}\
+                 Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                body.len()
+            ),
+        )
+    };
+    let pause = r#"{"command": "pause"}"#;
+    let json = "Content-Type: application/json\r\n";
+    // The guard answers before the server behind it is up: wait for that.
+    let deadline = Instant::now() + WAIT;
+    let ok = loop {
+        let answer = send(json, pause);
+        if !answer.starts_with("HTTP/1.1 502") || Instant::now() > deadline {
+            break answer;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
+    let ok = send("Content-Type: application/json; charset=utf-8\r\n", pause);
+    assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
+    let own = format!("{json}Origin: http://127.0.0.1:{port}\r\n");
+    let ok = send(&own, pause);
+    assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
+    for (headers, body, says) in [
+        (
+            "Content-Type: application/jsonx\r\n".to_string(),
+            pause,
+            "commands must be sent as application/json",
+        ),
+        (
+            format!("{json}Origin: http://evil.example\r\n"),
+            pause,
+            "not from 'http://evil.example'",
+        ),
+        (
+            json.to_string(),
+            r#"{"command": "pause", "now": true}"#,
+            "unknown field `now`",
+        ),
+    ] {
+        let answer = send(&headers, body);
+        assert!(
+            answer.starts_with("HTTP/1.1 4") && answer.contains(says),
+            "{headers}{body}: {answer}"
+        );
+    }
+    let state = raw_http(
+        port,
+        &format!("GET /state HTTP/1.1\r\nHost: LOCALHOST:{port}\r\nConnection: close\r\n\r\n"),
+    );
+    assert!(state.starts_with("HTTP/1.1 200"), "{state}");
     let _ = post(port, r#"{"command": "quit"}"#);
     let (status, _) = wait_exit(&mut live, "quit");
     assert!(status.success());

@@ -378,17 +378,32 @@ impl WebServer {
         };
         if self.options.is_loopback() {
             let host = get("Host").unwrap_or_default();
-            let name = host.rsplit_once(':').map_or(host.as_str(), |(h, _)| h);
-            if !matches!(name, "127.0.0.1" | "localhost" | "[::1]") {
+            let name = host
+                .rsplit_once(':')
+                .map_or(host.as_str(), |(h, _)| h)
+                .to_ascii_lowercase();
+            if !matches!(name.as_str(), "127.0.0.1" | "localhost" | "[::1]") {
                 return Err(format!(
                     "this server is bound to loopback and answers only localhost, not '{host}'"
                 ));
             }
         }
         if *request.method() == tiny_http::Method::Post {
+            // The media type itself, parameters (`; charset=utf-8`) aside: not a prefix
+            // (`application/jsonx` is not JSON).
             let kind = get("Content-Type").unwrap_or_default();
-            if !kind.starts_with("application/json") {
+            let media = kind.split(';').next().unwrap_or_default().trim();
+            if !media.eq_ignore_ascii_case("application/json") {
                 return Err("commands must be sent as application/json".into());
+            }
+            // A browser names the page that sends a command; only this server's own may.
+            if let Some(origin) = get("Origin") {
+                let host = get("Host").unwrap_or_default();
+                if !origin.eq_ignore_ascii_case(&format!("http://{host}")) {
+                    return Err(format!(
+                        "commands come only from this server's own page (http://{host}), not from '{origin}'"
+                    ));
+                }
             }
         }
         Ok(())
@@ -428,8 +443,7 @@ impl WebServer {
                 }
                 let snapshot = lock_snapshot(&shared);
                 let parsed = body.and_then(|body| {
-                    let request: WebRequest = serde_json::from_str(&body)
-                        .map_err(|e| format!("malformed request: {e}"))?;
+                    let request = WebRequest::parse(&body)?;
                     let what = request.describe();
                     Ok((what, commands(request, &snapshot, &checkpoints)?))
                 });
@@ -454,7 +468,9 @@ impl WebServer {
                         }
                         respond(request, 200, &json!({ "ok": true, "receipt": *sent }));
                     }
-                    Err(error) => respond(request, 400, &json!({ "error": error })),
+                    Err(error) => {
+                        respond(request, 400, &json!({ "error": without_backtrace(&error) }))
+                    }
                 }
             });
         if spawned.is_err() {
@@ -732,11 +748,46 @@ pub enum WebRequest {
     Quit,
 }
 
+/// An error for the page: what it says, without a backtrace some libraries append (candle's
+/// errors carry one when RUST_BACKTRACE is set) — no source paths reach a browser.
+fn without_backtrace(text: &str) -> String {
+    let cut = ["\nstack backtrace:", "\nStack backtrace:", "\n   0: "]
+        .iter()
+        .filter_map(|m| text.find(m))
+        .min()
+        .unwrap_or(text.len());
+    text[..cut].trim_end().to_string()
+}
+
 fn one() -> usize {
     1
 }
 
 impl WebRequest {
+    /// One request body: JSON with no key given twice, one known command with exactly its
+    /// fields (serde's `deny_unknown_fields` lets extra keys through on a command without
+    /// fields, so those are checked here).
+    pub fn parse(body: &str) -> Result<Self, String> {
+        let malformed = |e: &dyn std::fmt::Display| format!("malformed request: {e}");
+        let value = crate::damage::scenario::strict_json(body).map_err(|e| malformed(&e))?;
+        let request: WebRequest =
+            serde_json::from_value(value.clone()).map_err(|e| malformed(&e))?;
+        let bare = matches!(
+            request,
+            Self::Pause | Self::Resume | Self::Reset | Self::EndFork | Self::Quit
+        );
+        if bare
+            && let Some(extra) = value
+                .as_object()
+                .and_then(|o| o.keys().find(|k| k.as_str() != "command"))
+        {
+            return Err(malformed(&format!(
+                "unknown field `{extra}`: this command takes none"
+            )));
+        }
+        Ok(request)
+    }
+
     /// A few words for the page's "last command" line.
     fn describe(&self) -> String {
         match self {
@@ -1043,7 +1094,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
         "global_step": s.global_step,
         "steps_per_s": s.steps_per_s,
         "target_steps_per_s": s.target_steps_per_s,
-        "message": s.message,
+        "message": s.message.as_deref().map(without_backtrace),
         "breakpoints": s.breakpoints.iter().map(|b| b.to_string()).collect::<Vec<_>>(),
         "break_hit": s.break_hit.as_ref().map(|b| b.to_string()),
         "rewindable": s.rewindable,
@@ -1093,5 +1144,21 @@ mod tests {
         // A misspelt field is an error, not a silent default.
         assert!(serde_json::from_str::<WebRequest>(r#"{"command":"step","cout":5}"#).is_err());
         assert!(serde_json::from_str::<WebRequest>(r#"{"command":"explode"}"#).is_err());
+        // A command without fields takes none; no key twice.
+        assert!(WebRequest::parse(r#"{"command":"pause"}"#).is_ok());
+        let err = WebRequest::parse(r#"{"command":"pause","now":true}"#).unwrap_err();
+        assert!(err.contains("unknown field `now`"), "{err}");
+        let err = WebRequest::parse(r#"{"command":"step","count":1,"count":9}"#).unwrap_err();
+        assert!(err.contains("duplicate key"), "{err}");
+    }
+
+    #[test]
+    fn page_errors_carry_no_backtrace() {
+        let candle_like = "cannot load x: shape mismatch\nStack backtrace:\n   0: candle_core::error::Error::bt\n             at /root/.cargo/registry/src/candle-core/src/error.rs:264:25";
+        assert_eq!(
+            without_backtrace(candle_like),
+            "cannot load x: shape mismatch"
+        );
+        assert_eq!(without_backtrace("plain"), "plain");
     }
 }
