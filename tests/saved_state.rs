@@ -306,6 +306,36 @@ fn a_recording_starts_from_a_saved_state() {
             assert!((a - b).abs() < 1e-9, "step {}: {a} vs {b}", K + t);
         }
     }
+    // A state the episode refuses at its start (a step past its limit) stops the recording
+    // with its reason and leaves no file, not even `.partial` (issue 49 #8).
+    let mut late: Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    late["step"] = 100_000.into();
+    let late_file = dir.path().join("late.json");
+    std::fs::write(&late_file, late.to_string()).unwrap();
+    let refused = dir.path().join("refused.rrd");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .args([
+            "record",
+            "--checkpoint",
+            CHECKPOINT,
+            "--condition",
+            "severe",
+        ])
+        .args(["--max-steps", "150", "--init-state"])
+        .arg(&late_file)
+        .arg("--out")
+        .arg(&refused)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("step limit"), "{err}");
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("refused"))
+        .collect();
+    assert!(left.is_empty(), "left {left:?}");
 }
 
 /// Another model than the one that saved a state may start from it, with a warning that says

@@ -79,6 +79,15 @@ impl PartialFile {
     }
 }
 
+/// Removes a file when dropped (whatever is there by then).
+struct RemoveOnDrop(std::path::PathBuf);
+
+impl Drop for RemoveOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
 /// Entity roots for several models: `ant` alone, else each model's label (made unique).
 pub fn model_roots(actors: &[Actor]) -> Vec<String> {
     let mut roots: Vec<String> = Vec::new();
@@ -125,6 +134,10 @@ pub fn record(
         Some(f) => Sink::File(f.partial.clone()),
         None => opts.sink.clone(),
     };
+    // Declared before the session, so dropped after it (the file closed first): a recording
+    // that stops on an error (a state refused at the episode's start, a fork that never came)
+    // leaves no `.partial` behind. After the rename there is nothing left to remove.
+    let _leftover = file.as_ref().map(|f| RemoveOnDrop(f.partial.clone()));
     let (rec, storage) = super::open_titled(&sink, &recording_id, &roots, &titles)?;
     let specs = opts
         .actors
