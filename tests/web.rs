@@ -1267,3 +1267,114 @@ fn commands_are_checked_by_type_origin_and_fields() {
     let (status, _) = wait_exit(&mut live, "quit");
     assert!(status.success());
 }
+
+/// `live --web --search DIR`: the page gets the folder's findings, and "Next failure"'s three
+/// commands (the finding's scenario, its seed, a reset) replay a held-out episode the search
+/// saw fail — it fails here too, live, step for step the same world. The button itself, in
+/// Chromium, steps to the same finding.
+#[test]
+fn the_page_steps_through_a_search_folders_failures() {
+    let dir = tempfile::tempdir().unwrap();
+    let found = dir.path().join("search");
+    let o = Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args([
+            "search",
+            "--checkpoint",
+            "checkpoints/encoder-lstm",
+            "--budget",
+            "3",
+        ])
+        .args([
+            "--evaluations",
+            "6",
+            "--episodes",
+            "4",
+            "--held-out",
+            "8",
+            "--top",
+            "1",
+        ])
+        .args([
+            "--shrink-evaluations",
+            "0",
+            "--max-steps",
+            "150",
+            "--latest-onset",
+            "10",
+        ])
+        .arg("--out")
+        .arg(&found)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let args = [
+        "--paused".as_ref(),
+        "--max-steps".as_ref(),
+        "150".as_ref(),
+        "--search".as_ref(),
+        found.as_os_str(),
+    ];
+    let (mut live, [port, _, _]) = live_web(&args, Stdio::piped());
+    let (_driver, rt, client) = control_page(port);
+    let found = found.clone();
+    rt.block_on(async move {
+        client
+            .wait()
+            .at_most(WAIT)
+            .for_element(Locator::Id("fail-hip_1"))
+            .await
+            .unwrap();
+        let s = state(&client).await;
+        let findings = s["session"]["findings"].as_array().unwrap().clone();
+        // Deterministic: the same seeds always give this search a failing held-out episode.
+        let first = findings
+            .iter()
+            .find(|f| !f["failing_seeds"].as_array().unwrap().is_empty())
+            .expect("a finding with a failing held-out episode");
+        let seed = first["failing_seeds"][0].as_u64().unwrap();
+        click(&client, "next-failure").await;
+        let s = wait_state(&client, "the finding's episode", |s| {
+            s["episode_seed"].as_u64() == Some(seed) && lane_step(s) == 0
+        })
+        .await;
+        assert_eq!(
+            s["scenario"],
+            format!("search-{}", first["name"].as_str().unwrap())
+        );
+        let shown = client
+            .find(Locator::Id("finding"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert!(shown.contains(&format!("seed {seed}")), "{shown}");
+        // Run it out, exactly as many steps as the search's held-out run took (one more would
+        // start the next episode): it ends there, and fails, as it did in the search.
+        let log = std::fs::read_to_string(found.join("candidates.jsonl")).unwrap();
+        let steps = log
+            .lines()
+            .map(|l| serde_json::from_str::<Value>(l).unwrap())
+            .filter(|c| c["phase"] == "held-out")
+            .flat_map(|c| c["outcomes"][0].as_array().unwrap().clone())
+            .find(|e| e["seed"].as_u64() == Some(seed))
+            .and_then(|e| e["steps"].as_u64())
+            .unwrap();
+        client
+            .execute(
+                "gaitscopeSend({command: 'step', count: arguments[0]});",
+                vec![json!(steps)],
+            )
+            .await
+            .unwrap();
+        let s = wait_state(&client, "the episode's end", |s| {
+            s["lanes"][0]["done"] == true
+        })
+        .await;
+        assert_eq!(lane_step(&s), steps, "{}", s["lanes"][0]);
+        assert_eq!(s["lanes"][0]["success"], false, "{}", s["lanes"][0]);
+    });
+    let _ = post(port, r#"{"command": "quit"}"#);
+    let _ = wait_exit(&mut live, "quit");
+}

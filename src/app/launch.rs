@@ -20,6 +20,8 @@ pub struct LiveLaunch {
     pub exit_after: Option<Duration>,
     /// The checkpoints the panel or page offers, beside the session's own (which are added).
     pub offered: Vec<PathBuf>,
+    /// A search folder's findings the page steps through ("next failure").
+    pub findings: Vec<crate::search::Finding>,
 }
 
 /// Who drives the session.
@@ -189,7 +191,7 @@ pub fn run_live(
             };
             let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
             let sim = SimHandle::spawn(rec, launch.setup)?;
-            let server = web::WebServer::start(options.clone(), front, offered)?;
+            let server = web::WebServer::start(options.clone(), front, offered, launch.findings)?;
             note(LaunchNote::Serving {
                 control: options.control_url(),
                 viewer: options.viewer_url(),

@@ -213,6 +213,8 @@ pub struct WebServer {
     _front: Front,
     /// Checkpoint folders the page may open (the page never names an arbitrary path).
     checkpoints: Vec<PathBuf>,
+    /// A search folder's findings (`live --search DIR`), for the page's "next failure".
+    findings: Vec<crate::search::Finding>,
 }
 
 /// What the control server did, for the end-of-session report.
@@ -231,6 +233,7 @@ impl WebServer {
         options: WebOptions,
         front: Front,
         checkpoints: Vec<PathBuf>,
+        findings: Vec<crate::search::Finding>,
     ) -> Result<Self, WebError> {
         let viewer =
             re_web_viewer_server::WebViewerServer::new("127.0.0.1", front.viewer_backend.into())
@@ -248,6 +251,7 @@ impl WebServer {
             _viewer: viewer,
             _front: front,
             checkpoints,
+            findings,
         })
     }
 
@@ -514,6 +518,7 @@ impl WebServer {
             "scenarios": crate::damage::scenario::OOD_SUITE.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
             "viewer_url": self.options.viewer_url(),
             "viewer_batch_ms": crate::telemetry::web_stream_batch().as_millis() as u64,
+            "findings": self.findings,
             "limits": { "min_speed": MIN_SPEED, "max_speed": MAX_SPEED, "max_steps": MAX_STEPS_PER_REQUEST },
         })
     }

@@ -57,6 +57,10 @@ pub(crate) struct LiveArgs {
     /// --save-state-at`, the panel's "Save state") with its damage, or a bare {"qpos", "qvel"}.
     #[arg(long, value_name = "FILE")]
     init_state: Option<PathBuf>,
+    /// A `gaitscope search` folder: the page lists its findings and steps through the held-out
+    /// episodes they broke ("next failure"; with --web).
+    #[arg(long, value_name = "DIR", requires = "web")]
+    search: Option<PathBuf>,
     /// Start with the attribution view on: why z moved, per step (the panel and page toggle it).
     #[arg(long)]
     attribution: bool,
@@ -187,6 +191,10 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
         save: save_file.as_ref().map(|f| f.partial().to_path_buf()),
         exit_after: args.exit_after.map(std::time::Duration::from_secs_f64),
         offered: app::discover_checkpoints(std::path::Path::new("checkpoints")),
+        findings: match &args.search {
+            Some(dir) => gaitscope::search::findings(dir)?,
+            None => Vec::new(),
+        },
     };
     // Ctrl-C / SIGTERM end a web session like the page's Quit: the report and the --save file
     // come out (the native panel handles its own window's close).

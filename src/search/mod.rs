@@ -350,6 +350,23 @@ impl Log {
         })
     }
 
+    /// The complete lines of a log, read without opening it for writing.
+    fn open_read_only(path: &Path) -> Result<Vec<Candidate>, SearchError> {
+        let text =
+            crate::files::read_text_capped(path, MAX_LOG_BYTES).map_err(io(path, "cannot read"))?;
+        text.split_inclusive('\n')
+            .filter(|l| l.ends_with('\n'))
+            .enumerate()
+            .map(|(i, line)| {
+                serde_json::from_str(line).map_err(|e| SearchError::Corrupt {
+                    path: path.to_path_buf(),
+                    line: i + 1,
+                    reason: e.to_string(),
+                })
+            })
+            .collect()
+    }
+
     fn append(&mut self, c: &Candidate) -> Result<(), SearchError> {
         let mut line = serde_json::to_string(c).map_err(|e| SearchError::Corrupt {
             path: self.path.clone(),
@@ -771,6 +788,70 @@ fn record_worst(
     Ok(evaluator
         .record(&scenario, seed, &path, &caption)?
         .map(|p| (p, seed)))
+}
+
+/// One finding of a finished search, for the live viewer's "next failure": a scenario file of
+/// the folder and the held-out seeds on which it broke the (first) model — where, against B,
+/// B succeeded.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Finding {
+    /// The file's stem: `top-1`, `reference-best`, `minimal`.
+    pub name: String,
+    /// The scenario file's text (as `--scenario` and the page's upload take it).
+    pub scenario: String,
+    pub description: String,
+    pub failing_seeds: Vec<u64>,
+}
+
+/// The findings of a finished search folder, in its summary's order (top candidates, the
+/// reference's best, the minimal one), each with the held-out seeds that failed.
+pub fn findings(dir: &Path) -> Result<Vec<Finding>, SearchError> {
+    let options_path = dir.join("search.json");
+    let text = crate::files::read_text_capped(&options_path, 1 << 20)
+        .map_err(io(&options_path, "cannot read (is this a search folder?)"))?;
+    let opts: SearchOptions = serde_json::from_str(&text).map_err(|e| SearchError::Corrupt {
+        path: options_path.clone(),
+        line: e.line(),
+        reason: e.to_string(),
+    })?;
+    let log = Log::open_read_only(&dir.join("candidates.jsonl"))?;
+    let held: Vec<&Candidate> = log.iter().filter(|c| c.phase == Phase::HeldOut).collect();
+    // Held-out runs in the order `run` makes them: the top ones, the reference's best, the
+    // minimal one, then no damage.
+    let mut names: Vec<String> = (1..=opts.top).map(|i| format!("top-{i}")).collect();
+    if opts.reference {
+        names.push("reference-best".into());
+    }
+    names.push("minimal".into());
+    let mut out = Vec::new();
+    for (name, c) in names.iter().zip(&held) {
+        let path = dir.join(format!("{name}.json"));
+        if existing(&path)?.is_none() {
+            continue; // fewer distinct top candidates than --top
+        }
+        let scenario =
+            crate::files::read_text_capped(&path, 1 << 20).map_err(io(&path, "cannot read"))?;
+        let parsed = crate::damage::scenario::Scenario::from_json(&scenario, name)?;
+        let failing_seeds = (0..c.outcomes[0].len())
+            .filter(|&k| {
+                !c.outcomes[0][k].success && c.outcomes.get(1).is_none_or(|b| b[k].success)
+            })
+            .map(|k| c.outcomes[0][k].seed)
+            .collect();
+        out.push(Finding {
+            name: name.clone(),
+            scenario,
+            description: parsed.description,
+            failing_seeds,
+        });
+    }
+    if out.is_empty() {
+        return Err(SearchError::Options(format!(
+            "{} holds no finished search (no held-out runs yet)",
+            dir.display()
+        )));
+    }
+    Ok(out)
 }
 
 /// Which options differ, by name (for a refused resume).
