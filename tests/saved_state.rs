@@ -270,14 +270,9 @@ fn bad_state_files_are_clear_errors() {
     assert!(!late.exists());
 }
 
-/// `record --init-state`: the recording starts where the state was saved, damage included —
-/// its first step is the saved episode's step K (the same session start `live` uses).
-#[test]
-fn a_recording_starts_from_a_saved_state() {
-    let dir = tempfile::tempdir().unwrap();
-    let (rows, file) = saved_episode(dir.path());
-    let out = dir.path().join("from-state.rrd");
-    let status = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+/// `record` of the checkpoint (severe, 150 steps) from a state file to `out`.
+fn record_from(state: &Path, out: &Path) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
         .args([
             "record",
             "--checkpoint",
@@ -286,11 +281,21 @@ fn a_recording_starts_from_a_saved_state() {
             "severe",
         ])
         .args(["--max-steps", "150", "--init-state"])
-        .arg(&file)
+        .arg(state)
         .arg("--out")
-        .arg(&out)
+        .arg(out)
         .output()
-        .unwrap();
+        .unwrap()
+}
+
+/// `record --init-state`: the recording starts where the state was saved, damage included —
+/// its first step is the saved episode's step K (the same session start `live` uses).
+#[test]
+fn a_recording_starts_from_a_saved_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rows, file) = saved_episode(dir.path());
+    let out = dir.path().join("from-state.rrd");
+    let status = record_from(&file, &out);
     assert!(
         status.status.success(),
         "{}",
@@ -313,20 +318,7 @@ fn a_recording_starts_from_a_saved_state() {
     let late_file = dir.path().join("late.json");
     std::fs::write(&late_file, late.to_string()).unwrap();
     let refused = dir.path().join("refused.rrd");
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
-        .args([
-            "record",
-            "--checkpoint",
-            CHECKPOINT,
-            "--condition",
-            "severe",
-        ])
-        .args(["--max-steps", "150", "--init-state"])
-        .arg(&late_file)
-        .arg("--out")
-        .arg(&refused)
-        .output()
-        .unwrap();
+    let o = record_from(&late_file, &refused);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("step limit"), "{err}");
     let left: Vec<_> = std::fs::read_dir(dir.path())

@@ -1155,6 +1155,24 @@ fn web_viewer_latency() {
     eprintln!("after {:.0} s: {} steps behind", last.0, last.1 - last.2);
 }
 
+/// Sends Pause once the server behind the control port's guard is up (the guard answers 502
+/// until then).
+fn pause_when_up(port: u16) {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let answer = post(port, r#"{"command": "pause"}"#);
+        if !answer.starts_with("HTTP/1.1 502") {
+            assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the control server never came up"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
 /// Layout changes (here the attribution view, on and off) leave no thread behind: each distinct
 /// layout is built once (issue 49: 1,000 toggles had grown the process from 24 to 6,030
 /// threads).
@@ -1174,15 +1192,7 @@ fn toggling_views_leaves_no_threads_behind() {
         );
         assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
     };
-    // The guard answers before the server behind it is up: wait for that.
-    let deadline = Instant::now() + WAIT;
-    while post(port, r#"{"command": "pause"}"#).starts_with("HTTP/1.1 502") {
-        assert!(
-            Instant::now() < deadline,
-            "the control server never came up"
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    pause_when_up(port);
     // Both layouts built once, then counted.
     toggle(true);
     toggle(false);
@@ -1220,15 +1230,8 @@ fn commands_are_checked_by_type_origin_and_fields() {
     };
     let pause = r#"{"command": "pause"}"#;
     let json = "Content-Type: application/json\r\n";
-    // The guard answers before the server behind it is up: wait for that.
-    let deadline = Instant::now() + WAIT;
-    let ok = loop {
-        let answer = send(json, pause);
-        if !answer.starts_with("HTTP/1.1 502") || Instant::now() > deadline {
-            break answer;
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    };
+    pause_when_up(port);
+    let ok = send(json, pause);
     assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
     let ok = send("Content-Type: application/json; charset=utf-8\r\n", pause);
     assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");

@@ -215,6 +215,9 @@ pub struct WebServer {
     checkpoints: Vec<PathBuf>,
     /// A search folder's findings (`live --search DIR`), for the page's "next failure".
     findings: Vec<crate::search::Finding>,
+    /// How the stream reaches the web viewer ([`crate::telemetry::web_stream_batch`]), read
+    /// once: the page shows it.
+    viewer_batch: std::time::Duration,
 }
 
 /// What the control server did, for the end-of-session report.
@@ -252,6 +255,7 @@ impl WebServer {
             _front: front,
             checkpoints,
             findings,
+            viewer_batch: crate::telemetry::web_stream_batch(),
         })
     }
 
@@ -517,7 +521,7 @@ impl WebServer {
             "checkpoints": self.checkpoints.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
             "scenarios": crate::damage::scenario::OOD_SUITE.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
             "viewer_url": self.options.viewer_url(),
-            "viewer_batch_ms": crate::telemetry::web_stream_batch().as_millis() as u64,
+            "viewer_batch_ms": self.viewer_batch.as_millis() as u64,
             "findings": self.findings,
             "limits": { "min_speed": MIN_SPEED, "max_speed": MAX_SPEED, "max_steps": MAX_STEPS_PER_REQUEST },
         })

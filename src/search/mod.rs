@@ -244,10 +244,13 @@ impl SearchOptions {
 /// failure rate + 0.01 · mean final distance (as a fraction of the goal's, at most 1); for
 /// [`Objective::Separate`] success(B) − success(A) + 0.01 · mean (distance A − distance B) as a
 /// fraction. The distance terms only order candidates with equal success.
+/// Successes among `o`, as a rate with its Wilson interval.
+fn success(o: &[EpisodeOutcome]) -> Rate {
+    Rate::new(o.iter().filter(|e| e.success).count(), o.len())
+}
+
 pub fn score(objective: Objective, outcomes: &[Vec<EpisodeOutcome>], goal: f64) -> f64 {
-    let rate = |o: &[EpisodeOutcome]| {
-        o.iter().filter(|e| e.success).count() as f64 / o.len().max(1) as f64
-    };
+    let rate = |o: &[EpisodeOutcome]| success(o).rate;
     let dist = |o: &[EpisodeOutcome]| {
         o.iter()
             .map(|e| (e.final_distance / goal).clamp(0.0, 1.0))
@@ -310,32 +313,10 @@ impl Log {
     /// Opens (or starts) candidates.jsonl: every complete line is kept; a torn last line (a kill
     /// mid-write) is cut off.
     fn open(path: &Path) -> Result<Self, SearchError> {
-        let mut done = Vec::new();
-        let mut keep = 0u64;
-        if existing(path)?.is_some() {
-            let text = crate::files::read_text_capped(path, MAX_LOG_BYTES)
-                .map_err(io(path, "cannot read"))?;
-            for (i, line) in text.split_inclusive('\n').enumerate() {
-                if !line.ends_with('\n') {
-                    break; // torn: rewritten below
-                }
-                let c: Candidate =
-                    serde_json::from_str(line).map_err(|e| SearchError::Corrupt {
-                        path: path.to_path_buf(),
-                        line: i + 1,
-                        reason: e.to_string(),
-                    })?;
-                if c.index != i {
-                    return Err(SearchError::Corrupt {
-                        path: path.to_path_buf(),
-                        line: i + 1,
-                        reason: format!("index {} where {i} belongs", c.index),
-                    });
-                }
-                keep += line.len() as u64;
-                done.push(c);
-            }
-        }
+        let (done, keep) = match existing(path)? {
+            Some(_) => read_log(path)?,
+            None => (Vec::new(), 0),
+        };
         let file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -350,23 +331,6 @@ impl Log {
         })
     }
 
-    /// The complete lines of a log, read without opening it for writing.
-    fn open_read_only(path: &Path) -> Result<Vec<Candidate>, SearchError> {
-        let text =
-            crate::files::read_text_capped(path, MAX_LOG_BYTES).map_err(io(path, "cannot read"))?;
-        text.split_inclusive('\n')
-            .filter(|l| l.ends_with('\n'))
-            .enumerate()
-            .map(|(i, line)| {
-                serde_json::from_str(line).map_err(|e| SearchError::Corrupt {
-                    path: path.to_path_buf(),
-                    line: i + 1,
-                    reason: e.to_string(),
-                })
-            })
-            .collect()
-    }
-
     fn append(&mut self, c: &Candidate) -> Result<(), SearchError> {
         let mut line = serde_json::to_string(c).map_err(|e| SearchError::Corrupt {
             path: self.path.clone(),
@@ -378,6 +342,46 @@ impl Log {
             .write_all(line.as_bytes())
             .map_err(io(&self.path, "cannot write"))
     }
+}
+
+/// The complete lines of a log, each in its place (a torn last line, from a kill mid-write, is
+/// left out), and their length in bytes.
+fn read_log(path: &Path) -> Result<(Vec<Candidate>, u64), SearchError> {
+    let text =
+        crate::files::read_text_capped(path, MAX_LOG_BYTES).map_err(io(path, "cannot read"))?;
+    let corrupt = |line: usize, reason: String| SearchError::Corrupt {
+        path: path.to_path_buf(),
+        line,
+        reason,
+    };
+    let mut done = Vec::new();
+    let mut keep = 0u64;
+    for (i, line) in text.split_inclusive('\n').enumerate() {
+        if !line.ends_with('\n') {
+            break;
+        }
+        let c: Candidate = serde_json::from_str(line).map_err(|e| corrupt(i + 1, e.to_string()))?;
+        if c.index != i {
+            return Err(corrupt(
+                i + 1,
+                format!("index {} where {i} belongs", c.index),
+            ));
+        }
+        keep += line.len() as u64;
+        done.push(c);
+    }
+    Ok((done, keep))
+}
+
+/// A search folder's search.json.
+fn read_options(path: &Path) -> Result<SearchOptions, SearchError> {
+    let text = crate::files::read_text_capped(path, 1 << 20)
+        .map_err(io(path, "cannot read (is this a search folder?)"))?;
+    serde_json::from_str(&text).map_err(|e| SearchError::Corrupt {
+        path: path.to_path_buf(),
+        line: e.line(),
+        reason: e.to_string(),
+    })
 }
 
 /// The search in progress: options, the evaluator, the log.
@@ -422,10 +426,6 @@ impl Run<'_> {
             return Ok(done.clone());
         }
         let outcomes = self.evaluator.evaluate(schedule, seeds)?;
-        let success = outcomes
-            .iter()
-            .map(|o| o.iter().filter(|e| e.success).count() as f64 / o.len().max(1) as f64)
-            .collect();
         let c = Candidate {
             index,
             phase,
@@ -433,7 +433,7 @@ impl Run<'_> {
             schedule: schedule.clone(),
             severity: round9(schedule.severity()),
             score: score(self.opts.objective, &outcomes, self.opts.goal_distance),
-            success,
+            success: outcomes.iter().map(|o| success(o).rate).collect(),
             outcomes,
             models: self.opts.models.clone(),
             search_seed: self.opts.seed,
@@ -637,14 +637,7 @@ pub fn run(
     })? + "\n";
     match existing(&options_path)? {
         Some(_) => {
-            let text = crate::files::read_text_capped(&options_path, 1 << 20)
-                .map_err(io(&options_path, "cannot read"))?;
-            let theirs: SearchOptions =
-                serde_json::from_str(&text).map_err(|e| SearchError::Corrupt {
-                    path: options_path.clone(),
-                    line: e.line(),
-                    reason: e.to_string(),
-                })?;
+            let theirs = read_options(&options_path)?;
             if theirs != *opts {
                 return Err(SearchError::Different {
                     path: out.to_path_buf(),
@@ -683,11 +676,7 @@ pub fn run(
     let held_out_seeds = opts.held_out_seeds();
     let confirm = |run: &mut Run, name: String, c: &Candidate| {
         let held = run.evaluate(Phase::HeldOut, c.method, &c.schedule, &held_out_seeds)?;
-        let rates = held
-            .outcomes
-            .iter()
-            .map(|o| Rate::new(o.iter().filter(|e| e.success).count(), o.len()))
-            .collect();
+        let rates = held.outcomes.iter().map(|o| success(o)).collect();
         Ok::<_, SearchError>(Confirmed {
             name,
             search: c.clone(),
@@ -712,11 +701,7 @@ pub fn run(
         &Schedule::healthy(),
         &held_out_seeds,
     )?;
-    let undamaged = undamaged
-        .outcomes
-        .iter()
-        .map(|o| Rate::new(o.iter().filter(|e| e.success).count(), o.len()))
-        .collect();
+    let undamaged = undamaged.outcomes.iter().map(|o| success(o)).collect();
     run.progress.finish_and_clear();
     let worst = record_worst(opts, evaluator, &top[0], out)?;
     let mut report = SearchReport {
@@ -807,14 +792,8 @@ pub struct Finding {
 /// reference's best, the minimal one), each with the held-out seeds that failed.
 pub fn findings(dir: &Path) -> Result<Vec<Finding>, SearchError> {
     let options_path = dir.join("search.json");
-    let text = crate::files::read_text_capped(&options_path, 1 << 20)
-        .map_err(io(&options_path, "cannot read (is this a search folder?)"))?;
-    let opts: SearchOptions = serde_json::from_str(&text).map_err(|e| SearchError::Corrupt {
-        path: options_path.clone(),
-        line: e.line(),
-        reason: e.to_string(),
-    })?;
-    let log = Log::open_read_only(&dir.join("candidates.jsonl"))?;
+    let opts = read_options(&options_path)?;
+    let (log, _) = read_log(&dir.join("candidates.jsonl"))?;
     let held: Vec<&Candidate> = log.iter().filter(|c| c.phase == Phase::HeldOut).collect();
     // Held-out runs in the order `run` makes them: the top ones, the reference's best, the
     // minimal one, then no damage.
@@ -1109,6 +1088,23 @@ impl PolicyEvaluator {
         })
     }
 
+    /// What every episode runs under: `scenario` (a scenario file's JSON), severe as eval's
+    /// scenarios (the rule names no condition; fatigue is off), the search's step limit. Each
+    /// model runs it in its own world.
+    fn requested(
+        &self,
+        scenario: &serde_json::Value,
+        origin: &str,
+    ) -> Result<crate::config::GaitConfig, SearchError> {
+        let scenario = crate::damage::scenario::Scenario::from_json(&scenario.to_string(), origin)?;
+        let mut requested = crate::config::GaitConfig::default();
+        requested.damage.condition =
+            crate::damage::ConditionChoice::Fixed(crate::damage::Condition::Severe);
+        requested.damage.scenario = Some(scenario);
+        requested.env.max_episode_steps = self.max_steps;
+        Ok(requested)
+    }
+
     /// The first model's world: its goal distance and name.
     pub fn world(&self) -> crate::config::GaitConfig {
         self.actors[0]
@@ -1130,15 +1126,9 @@ impl Evaluate for PolicyEvaluator {
         caption: &str,
     ) -> Result<Option<PathBuf>, SearchError> {
         let name = scenario["name"].as_str().unwrap_or("search");
-        let scenario = crate::damage::scenario::Scenario::from_json(&scenario.to_string(), name)?;
-        let mut config = crate::config::GaitConfig::default();
-        config.damage.condition =
-            crate::damage::ConditionChoice::Fixed(crate::damage::Condition::Severe);
-        config.damage.scenario = Some(scenario);
-        config.env.max_episode_steps = self.max_steps;
         let opts = crate::telemetry::RecordOptions {
             actors: self.actors.iter().map(|(_, a)| a.clone()).collect(),
-            config,
+            config: self.requested(scenario, name)?,
             episodes: 1,
             seed,
             sink: crate::telemetry::Sink::File(path.to_path_buf()),
@@ -1157,14 +1147,7 @@ impl Evaluate for PolicyEvaluator {
         seeds: &[u64],
     ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
         let json = schedule.scenario_json("search-candidate", "", &self.joints);
-        let scenario =
-            crate::damage::scenario::Scenario::from_json(&json.to_string(), "search candidate")?;
-        let mut requested = crate::config::GaitConfig::default();
-        // As in eval: a scenario's fatigue rule names no condition, so severe; fatigue is off.
-        requested.damage.condition =
-            crate::damage::ConditionChoice::Fixed(crate::damage::Condition::Severe);
-        requested.damage.scenario = Some(scenario);
-        requested.env.max_episode_steps = self.max_steps;
+        let requested = self.requested(&json, "search candidate")?;
         let case = crate::eval::Case::scenario("search-candidate");
         let mut all = Vec::new();
         for (label, actor) in &self.actors {
