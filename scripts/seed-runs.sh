@@ -2,8 +2,10 @@
 # The evidence runs, two lanes, one per core, at nice 19, so they only take what foreground work
 # leaves. Issue 31's and 33's runs in the paper's world (checkpoints/seeds/) are done. Now issue
 # 47's calibration in the dead-joints world (checkpoints/dead-joints/): the oracle (true damage
-# as input) and the baseline, seeds 0 and 1. Both reached 500k steps with their training success
-# still rising (about 0.3 → 0.4 over the last 100k steps), so they go on to 1M; the LSTM runs
+# as input) and the baseline. Seed 0 of both reached 1M and the `damage` oracle (scales as
+# inputs) still did not beat the baseline under damage, so two oracles that read the same truth
+# as torque lost (1 − scale, 0 while whole) train first, to 500k, the step the baselines'
+# seeds 0 and 1 were compared at; then baseline-s1 and oracle-s1 go on to 1M. The LSTM runs
 # follow once oracle − baseline ≥ 15 points on held-out seeds. Each run resumes from its last checkpoint (every
 # 10,000 steps), so `start` is the same command on the first day and on a fresh machine after a
 # clone. The replay buffers live outside the work tree (~/.cache/gaitscope/replay/<world>/<run>),
@@ -33,8 +35,8 @@ steps=1000000
 lane_runs() {
   case $1 in
     # Seed 0's pair first, one model per lane, so a pair finishes together.
-    0) echo "dead-joints/oracle-s0 dead-joints/baseline-s1" ;;
-    1) echo "dead-joints/baseline-s0 dead-joints/oracle-s1" ;;
+    0) echo "dead-joints/oracle-s0 dead-joints/oracle-lost-s0 dead-joints/baseline-s1" ;;
+    1) echo "dead-joints/baseline-s0 dead-joints/oracle-lost-s1 dead-joints/oracle-s1" ;;
   esac
 }
 
@@ -44,6 +46,7 @@ flags_of() {
   local flags=()
   [ "$world" = seeds ] || flags+=(--world "$world")
   case $model in
+    oracle-lost-*) flags+=(--privileged torque-lost) ;;
     oracle-*) flags+=(--privileged damage) ;;
     baseline-*) flags+=(--encoder none) ;;
     encoder-lstm-aux-*) flags+=(--encoder lstm --aux dynamics) ;;
@@ -51,6 +54,14 @@ flags_of() {
     encoder-mlp-*) flags+=(--encoder mlp-window) ;;
   esac
   echo "${flags[*]}"
+}
+
+# Where a run stops: the torque-lost oracles at 500k first (the calibration's comparison step).
+steps_of() {
+  case ${1##*/} in
+    oracle-lost-*) echo 500000 ;;
+    *) echo "$steps" ;;
+  esac
 }
 
 steps_done() {
@@ -65,7 +76,7 @@ run_lane() {
   for run in $(lane_runs "$core"); do
     [ -e "$state/stop" ] && return 0
     dir="$runs_dir/$run"
-    if [ "$(steps_done "$run")" -ge "$steps" ]; then
+    if [ "$(steps_done "$run")" -ge "$(steps_of "$run")" ]; then
       continue
     fi
     local args
@@ -78,7 +89,7 @@ run_lane() {
     fi
     echo "$(date -u +%FT%TZ) lane $core: ${args[*]}"
     # `exec`-free so the lane survives to start the next run; the trainer's pid is kept for stop.
-    nice -n 19 taskset -c "$core" "$state/gaitscope" train "${args[@]}" --steps "$steps" \
+    nice -n 19 taskset -c "$core" "$state/gaitscope" train "${args[@]}" --steps "$(steps_of "$run")" \
       --replay-dir "$replay_root/$run" --quiet &
     echo $! >"$state/trainer-$core.pid"
     wait $! || echo "$(date -u +%FT%TZ) lane $core: $run exited with $?"
@@ -136,7 +147,7 @@ case "${1:-status}" in
   status)
     for core in 0 1; do
       for run in $(lane_runs "$core"); do
-        printf '%-28s %7s / %s steps\n' "$run" "$(steps_done "$run")" "$steps"
+        printf '%-28s %7s / %s steps\n' "$run" "$(steps_done "$run")" "$(steps_of "$run")"
       done
     done
     for pid in $(trainer_pids); do ps -o pid=,etime=,args= -p "$pid" || true; done

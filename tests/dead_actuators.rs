@@ -216,13 +216,24 @@ fn save_model(dir: &std::path::Path, net: NetConfig, world: &GaitConfig) {
 
 #[test]
 fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
+    the_oracle_reads(Privileged::Damage, |scale| scale);
+}
+
+#[test]
+fn the_torque_lost_oracle_reads_one_minus_the_true_scales_at_every_step() {
+    the_oracle_reads(Privileged::TorqueLost, |scale| 1.0 - scale);
+}
+
+/// An oracle of `kind` reads `told(scale)` per actuator after its observation, in training and
+/// in every lane, and no other model reads anything but its observation.
+fn the_oracle_reads(kind: Privileged, told: fn(f64) -> f64) {
     let world = dead_world(Condition::Severe);
-    let net = NetConfig::ant_oracle(Privileged::Damage);
+    let net = NetConfig::ant_oracle(kind);
     assert_eq!(net.obs_dim, OBS_DIM + N_ACTUATORS);
     net.check_inputs().unwrap();
     // A privileged encoder model makes no sense and is refused.
     let bad = NetConfig {
-        privileged: Privileged::Damage,
+        privileged: kind,
         ..NetConfig::ant(EncoderKind::Lstm)
     };
     assert!(bad.check_inputs().unwrap_err().contains("memoryless"));
@@ -231,14 +242,15 @@ fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
     let (probe_env, seed) = episode_with_deaths(&world);
     drop(probe_env);
     let env = AntEnv::new(world.clone(), 0).unwrap();
-    let mut task = gaitscope::train::AntTask::new(env, Privileged::Damage);
+    let mut task = gaitscope::train::AntTask::new(env, kind);
     use gaitscope::train::Task;
     assert_eq!(task.obs_dim(), OBS_DIM + N_ACTUATORS);
     let mut obs = task.reset_with_seed(seed);
     let mut saw_dead = false;
     for a in actions(140, 2) {
         let scales = *task.env.damage().scale();
-        assert_eq!(&obs[OBS_DIM..], &scales[..]);
+        let want: Vec<f64> = scales.iter().map(|&s| told(s)).collect();
+        assert_eq!(&obs[OBS_DIM..], &want[..]);
         saw_dead |= scales.contains(&0.0);
         let out = task.step(&a).unwrap();
         obs = out.obs;
@@ -258,7 +270,7 @@ fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
     save_model(dir.path(), net, &world);
     let actor = Actor::load(dir.path()).unwrap();
     let policy = actor.policy().unwrap();
-    assert_eq!(policy.net().privileged, Privileged::Damage);
+    assert_eq!(policy.net().privileged, kind);
     assert_eq!(policy.meta.env.world.0, "dead-joints");
     // Asked for in the paper's world, the checkpoint runs in its own (the caller's condition and
     // step limit apply).
@@ -273,7 +285,7 @@ fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
     while !lane.is_done() && lane.steps() < 140 {
         let mut input = Vec::new();
         input.extend(lane.obs().iter().map(|&v| v as f32));
-        input.extend(lane.env().damage().scale().iter().map(|&v| v as f32));
+        input.extend(lane.env().damage().scale().iter().map(|&v| told(v) as f32));
         saw_dead |= lane.env().damage().scale().contains(&0.0);
         let want = policy
             .act_batch(&input, None, ActionMode::Deterministic, None)
@@ -297,7 +309,7 @@ fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
     // Its input differs from the observation alone once a joint is dead: the scales matter.
     let mut obs_only = Vec::new();
     obs_only.extend(lane.obs().iter().map(|&v| v as f32));
-    obs_only.extend([1.0f32; N_ACTUATORS]);
+    obs_only.extend([told(1.0) as f32; N_ACTUATORS]);
     assert_ne!(
         policy
             .act_batch(&obs_only, None, ActionMode::Deterministic, None)
@@ -306,7 +318,7 @@ fn the_oracle_reads_the_true_scales_at_every_step_and_no_other_model_does() {
         {
             let mut input = Vec::new();
             input.extend(lane.obs().iter().map(|&v| v as f32));
-            input.extend(lane.env().damage().scale().iter().map(|&v| v as f32));
+            input.extend(lane.env().damage().scale().iter().map(|&v| told(v) as f32));
             policy
                 .act_batch(&input, None, ActionMode::Deterministic, None)
                 .unwrap()

@@ -55,10 +55,11 @@ pub(crate) struct TrainArgs {
     /// One encoder for actor and critic (SB3's share_features_extractor).
     #[arg(long)]
     share_encoder: bool,
-    /// Privileged inputs for an oracle: damage gives the memoryless model the true per-joint
-    /// torque scales beside the observation (a measured ceiling, never a deployable policy);
+    /// Privileged inputs for an oracle: the memoryless model gets the true per-joint damage
+    /// beside the observation (a measured ceiling, never a deployable policy), as torque
+    /// scales (damage) or as the torque lost, 1 − scale (torque-lost: 0 while whole);
     /// implies --encoder none. With --resume it must match the run's, and may be left out.
-    #[arg(long, value_enum, value_name = "damage")]
+    #[arg(long, value_enum, value_name = "KIND")]
     privileged: Option<PrivilegedArg>,
     /// Size of the encoder's latent z (default 32, the paper's); the window length is the
     /// config's `context.len`.

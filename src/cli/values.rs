@@ -78,6 +78,8 @@ mirror! {
     PrivilegedArg => Privileged, not offered: [None] {
         /// The true per-joint torque scales (8 values).
         Damage,
+        /// The torque each joint lost, 1 − scale (8 values, 0 while whole).
+        TorqueLost,
     }
 }
 
@@ -161,7 +163,7 @@ mod tests {
     fn flag_values_keep_their_names() {
         assert_eq!(names::<EncoderArg>(), ["none", "lstm", "mlp-window"]);
         assert_eq!(names::<AuxArg>(), ["none", "dynamics"]);
-        assert_eq!(names::<PrivilegedArg>(), ["damage"]);
+        assert_eq!(names::<PrivilegedArg>(), ["damage", "torque-lost"]);
         assert_eq!(names::<UpdateArg>(), ["fused", "reference"]);
         assert_eq!(names::<BuiltinArg>(), ["random", "zero"]);
         assert_eq!(names::<ImportEncoderArg>(), ["auto", "none", "lstm"]);

@@ -702,6 +702,17 @@ impl DamageState {
             .min()
     }
 
+    /// Step from which each actuator ran dead (the world's dead-actuator draw), if it died.
+    pub fn dead_steps(&self) -> [Option<usize>; N_ACTUATORS] {
+        let mut steps = [None; N_ACTUATORS];
+        for e in &self.events {
+            if e.kind == DamageEventKind::Dead && steps[e.actuator].is_none() {
+                steps[e.actuator] = Some(e.step);
+            }
+        }
+        steps
+    }
+
     /// Step at which each actuator first triggered by fatigue, if it did.
     pub fn first_trigger_steps(&self) -> [Option<usize>; N_ACTUATORS] {
         let mut steps = [None; N_ACTUATORS];
@@ -865,6 +876,22 @@ mod tests {
         let mut h = state(Condition::Healthy);
         h.apply_override(5, 0, JointOverride::FailNow).unwrap();
         assert_eq!(h.damage_onset(), Some(5));
+    }
+
+    #[test]
+    fn dead_steps_are_the_steps_the_world_killed_each_actuator() {
+        let mut d = state(Condition::Severe);
+        // A failure by hand is not a death by the world's draw.
+        d.apply_override(2, 1, JointOverride::FailNow).unwrap();
+        d.kill(10, 4, 0.0).unwrap();
+        d.kill(10, 5, 0.0).unwrap();
+        d.kill(40, 0, 0.0).unwrap();
+        let mut want = [None; N_ACTUATORS];
+        want[4] = Some(10);
+        want[5] = Some(10);
+        want[0] = Some(40);
+        assert_eq!(d.dead_steps(), want);
+        assert_eq!(d.damage_onset(), Some(2));
     }
 
     #[test]

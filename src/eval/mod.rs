@@ -182,6 +182,9 @@ pub struct EpisodeRecord {
     pub episode_return: f64,
     pub triggered_joints: usize,
     pub trigger_steps: [Option<usize>; N_ACTUATORS],
+    /// The step from which each actuator ran dead, if the world's draw killed it: which units
+    /// a failure had to walk without.
+    pub dead_steps: [Option<usize>; N_ACTUATORS],
     /// The first step run under damage ([`crate::damage::DamageState::damage_onset`]): after
     /// the first trigger, or from a scenario's first weakened joint.
     pub damage_onset: Option<usize>,
@@ -440,6 +443,7 @@ pub fn run_lockstep(
                     episode_return: returns[i],
                     triggered_joints: damage.n_triggered(),
                     trigger_steps: damage.first_trigger_steps(),
+                    dead_steps: damage.dead_steps(),
                     damage_onset: damage.damage_onset(),
                 });
             }

@@ -700,6 +700,7 @@ mod tests {
             episode_return: 0.0,
             triggered_joints: first_trigger.map_or(0, |_| 2),
             trigger_steps,
+            dead_steps: [None; N_ACTUATORS],
             damage_onset,
         }
     }

@@ -75,6 +75,14 @@ pub enum Privileged {
     /// values after the 29 of the observation): the damage oracle, a memoryless measured
     /// ceiling (RMA's expert).
     Damage,
+    /// The same truth as the torque each actuator lost, 1 − scale: 0 while a joint is whole.
+    /// Equivalent for a network up to its first layer's bias, not for training it: an input
+    /// stuck at 1 while healthy trains its weights like a bias, so a death then moves the
+    /// network by whatever they drifted to; an input at 0 leaves its weights to what damaged
+    /// steps teach them (issue 47: a `damage` oracle learned large weights there and no
+    /// damage-specific gait).
+    #[serde(rename = "torque-lost")]
+    TorqueLost,
 }
 
 impl Privileged {
@@ -82,6 +90,7 @@ impl Privileged {
         match self {
             Privileged::None => "none",
             Privileged::Damage => "damage",
+            Privileged::TorqueLost => "torque-lost",
         }
     }
 
@@ -89,7 +98,7 @@ impl Privileged {
     pub fn dim(self) -> usize {
         match self {
             Privileged::None => 0,
-            Privileged::Damage => crate::damage::N_ACTUATORS,
+            Privileged::Damage | Privileged::TorqueLost => crate::damage::N_ACTUATORS,
         }
     }
 
@@ -97,7 +106,21 @@ impl Privileged {
         *self == Privileged::None
     }
 
-    /// The model's input for one env: the observation, then (an oracle's) the true scales.
+    /// The values it adds for the torque scales `scales` (none for [`Privileged::None`]).
+    pub fn values(
+        self,
+        scales: &[f64; crate::damage::N_ACTUATORS],
+    ) -> impl Iterator<Item = f64> + '_ {
+        let f: Option<fn(f64) -> f64> = match self {
+            Privileged::None => None,
+            Privileged::Damage => Some(|s| s),
+            Privileged::TorqueLost => Some(|s| 1.0 - s),
+        };
+        f.into_iter().flat_map(move |f| scales.iter().map(move |&s| f(s)))
+    }
+
+    /// The model's input for one env: the observation, then (an oracle's) the true scales as
+    /// [`Self::values`] gives them.
     pub fn input(
         self,
         obs: &[f64],
@@ -105,9 +128,7 @@ impl Privileged {
         out: &mut Vec<f32>,
     ) {
         out.extend(obs.iter().map(|&v| v as f32));
-        if self == Privileged::Damage {
-            out.extend(scales.iter().map(|&v| v as f32));
-        }
+        out.extend(self.values(scales).map(|v| v as f32));
     }
 }
 

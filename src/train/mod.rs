@@ -162,9 +162,7 @@ impl AntTask {
     /// [`Privileged::input`] builds it for every lane).
     fn input(&self, obs: &crate::env::Observation) -> Vec<f64> {
         let mut v = obs.to_vec();
-        if self.privileged == Privileged::Damage {
-            v.extend_from_slice(self.env.damage().scale());
-        }
+        v.extend(self.privileged.values(self.env.damage().scale()));
         v
     }
 }
