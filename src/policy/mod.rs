@@ -116,7 +116,8 @@ impl Privileged {
             Privileged::Damage => Some(|s| s),
             Privileged::TorqueLost => Some(|s| 1.0 - s),
         };
-        f.into_iter().flat_map(move |f| scales.iter().map(move |&s| f(s)))
+        f.into_iter()
+            .flat_map(move |f| scales.iter().map(move |&s| f(s)))
     }
 
     /// The model's input for one env: the observation, then (an oracle's) the true scales as

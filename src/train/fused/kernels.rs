@@ -156,6 +156,37 @@ pub struct LstmRef<'a> {
     pub hidden: usize,
 }
 
+/// Runs `a` and `b` on two of the pool's threads when `parallel`, else one after the other.
+pub fn both<A: Send, B: Send>(
+    parallel: bool,
+    a: impl FnOnce() -> A + Send,
+    b: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    if parallel {
+        rayon::join(a, b)
+    } else {
+        (a(), b())
+    }
+}
+
+/// Each step's block of a time-major buffer (steps × rows × width), cut at row `at`: the first
+/// `at` rows of every step, and the rest.
+fn split_rows(
+    buffer: &mut [f32],
+    (steps, rows, width): (usize, usize, usize),
+    at: usize,
+) -> (Vec<&mut [f32]>, Vec<&mut [f32]>) {
+    buffer[..steps * rows * width]
+        .chunks_exact_mut(rows * width)
+        .map(|step| step.split_at_mut(at * width))
+        .unzip()
+}
+
+/// Where a pass over `rows` rows is cut between two threads (all rows on one without).
+fn row_cut(parallel: bool, rows: usize) -> usize {
+    if parallel { rows / 2 } else { rows }
+}
+
 /// Runs the LSTM from zero state over windows given in parts (each part rows_i × T × input,
 /// batch-major as the replay stores them); the parts' rows are stacked in order. The input
 /// projection is one GEMM per step and part, written straight into the time-major gates.
@@ -163,7 +194,17 @@ pub struct LstmRef<'a> {
 /// Given (windows, next windows) — every next window is its window shifted by one step plus the
 /// new (obs, action) — the second part's projection of steps 0..T−1 is the first part's of steps
 /// 1..T, copied: 17 distinct steps are projected instead of 32.
-pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmTape) {
+///
+/// `parallel` (inside the update's thread pool): the projection's steps are shared between two
+/// threads, then the recurrence's rows (rows are independent at every step). Each element is
+/// the same sum in the same order either way, so the bits do not depend on it (tested).
+pub fn lstm_forward(
+    l: LstmRef,
+    parts: &[&[f32]],
+    t_len: usize,
+    tape: &mut LstmTape,
+    parallel: bool,
+) {
     let (h, e) = (l.hidden, l.input);
     let g4 = 4 * h;
     let counts: Vec<usize> = parts.iter().map(|p| p.len() / (t_len * e)).collect();
@@ -187,8 +228,7 @@ pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmT
     // Gates start at b_ih + b_hh and the projection accumulates onto them: the same sums, in the
     // same order, as the reference's (x·W_ih) + b.
     let bias: Vec<f32> = l.b_ih.iter().zip(l.b_hh).map(|(a, b)| a + b).collect();
-    for t in 0..t_len {
-        let gates = &mut tape.gates[t * rows * g4..(t + 1) * rows * g4];
+    let project = |t: usize, gates: &mut [f32]| {
         let mut offset = 0;
         for (k, part) in parts.iter().enumerate() {
             let n = counts[k];
@@ -211,7 +251,26 @@ pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmT
             }
             offset += n;
         }
-    }
+    };
+    let mut steps: Vec<&mut [f32]> = tape.gates[..t_len * rows * g4]
+        .chunks_exact_mut(rows * g4)
+        .collect();
+    let (early, late) = steps.split_at_mut(if parallel { t_len / 2 } else { t_len });
+    both(
+        parallel,
+        || {
+            early
+                .iter_mut()
+                .enumerate()
+                .for_each(|(t, g)| project(t, g))
+        },
+        || {
+            let first = t_len - late.len();
+            late.iter_mut()
+                .enumerate()
+                .for_each(|(t, g)| project(first + t, g))
+        },
+    );
     if shifted {
         let n = counts[0];
         for t in 0..t_len - 1 {
@@ -220,20 +279,34 @@ pub fn lstm_forward(l: LstmRef, parts: &[&[f32]], t_len: usize, tape: &mut LstmT
             now[t * rows * g4 + n * g4..(t + 1) * rows * g4].copy_from_slice(&later[..n * g4]);
         }
     }
-    for t in 0..t_len {
-        let gates = &mut tape.gates[t * rows * g4..(t + 1) * rows * g4];
+    let at = row_cut(parallel, rows);
+    let (mut gates_a, mut gates_b) = split_rows(&mut tape.gates, (t_len, rows, g4), at);
+    let (mut cells_a, mut cells_b) = split_rows(&mut tape.cells, (t_len + 1, rows, h), at);
+    let (mut hidden_a, mut hidden_b) = split_rows(&mut tape.hidden, (t_len + 1, rows, h), at);
+    both(
+        parallel,
+        || recur(l, &mut gates_a, &mut cells_a, &mut hidden_a, at),
+        || recur(l, &mut gates_b, &mut cells_b, &mut hidden_b, rows - at),
+    );
+}
+
+/// The recurrence over some rows: `gates` per step (projected inputs in, activations out),
+/// `cells` and `hidden` per step from the zero state.
+fn recur(
+    l: LstmRef,
+    gates: &mut [&mut [f32]],
+    cells: &mut [&mut [f32]],
+    hidden: &mut [&mut [f32]],
+    rows: usize,
+) {
+    let (h, g4) = (l.hidden, 4 * l.hidden);
+    for (t, g) in gates.iter_mut().enumerate() {
         if t > 0 {
-            mm(
-                gates,
-                true,
-                (rows, g4, h),
-                &tape.hidden[t * rows * h..(t + 1) * rows * h],
-                l.w_hh,
-            );
+            mm(g, true, (rows, g4, h), &hidden[t][..], l.w_hh);
         }
-        let (c_prev, c_next) = tape.cells[t * rows * h..(t + 2) * rows * h].split_at_mut(rows * h);
-        let h_next = &mut tape.hidden[(t + 1) * rows * h..(t + 2) * rows * h];
-        lstm_kernel::step_forward(gates, c_prev, c_next, h_next, h);
+        let (c_done, c_next) = cells.split_at_mut(t + 1);
+        let h_next = &mut hidden[t + 1];
+        lstm_kernel::step_forward(g, &c_done[t][..], &mut c_next[0][..], h_next, h);
     }
 }
 
@@ -257,6 +330,11 @@ pub fn lstm_output(tape: &LstmTape, t_len: usize, h: usize) -> &[f32] {
 
 /// Gradients of an LSTM's four parameters (overwritten) from `d_z` for the first
 /// `rows` rows of the tape, whose inputs were `window` (rows × T × input).
+///
+/// First the gates' gradients at every step, back through time (rows are independent, so with
+/// `parallel` two threads take half the rows each), then the weights' gradients step by step in
+/// the same order as ever (with `parallel`, W_ih's and the bias's beside W_hh's): the same bits
+/// on one thread or two.
 #[allow(clippy::too_many_arguments)]
 pub fn lstm_backward(
     l: LstmRef,
@@ -267,6 +345,7 @@ pub fn lstm_backward(
     d_z: &[f32],
     scratch: &mut LstmScratch,
     grads: [&mut [f32]; 4],
+    parallel: bool,
 ) {
     let (h, e) = (l.hidden, l.input);
     let g4 = 4 * h;
@@ -276,37 +355,72 @@ pub fn lstm_backward(
     scratch.d_h.extend_from_slice(&d_z[..rows * h]);
     scratch.d_c.clear();
     scratch.d_c.resize(rows * h, 0.0);
-    scratch.d_gates.resize(rows * g4, 0.0);
-    g_w_ih.fill(0.0);
-    g_w_hh.fill(0.0);
-    g_b_ih.fill(0.0);
-    for t in (0..t_len).rev() {
-        let act = &tape.gates[t * stride * g4..t * stride * g4 + rows * g4];
-        let c_prev = &tape.cells[t * stride * h..t * stride * h + rows * h];
-        let c = &tape.cells[(t + 1) * stride * h..(t + 1) * stride * h + rows * h];
-        let d_g = &mut scratch.d_gates[..rows * g4];
-        lstm_kernel::step_backward(act, c_prev, c, &scratch.d_h, &mut scratch.d_c, d_g, h);
-        // dW_ih += x_tᵀ · dG (input rows strided by T·E), db += Σ_rows dG.
-        matmul(
-            g_w_ih,
-            true,
-            (e, g4, rows),
-            &window[t * e..],
-            (1, t_len * e),
-            d_g,
-            (g4, 1),
-        );
-        for row in d_g.chunks_exact(g4) {
-            for (o, v) in g_b_ih.iter_mut().zip(row) {
-                *o += v;
-            }
-        }
-        if t > 0 {
-            let h_prev = &tape.hidden[t * stride * h..t * stride * h + rows * h];
-            mm_tn(g_w_hh, true, (h, g4, rows), h_prev, d_g);
-            mm_nt(&mut scratch.d_h, false, (rows, h, g4), d_g, l.w_hh);
-        }
+    if scratch.d_gates.len() < t_len * rows * g4 {
+        scratch.d_gates.resize(t_len * rows * g4, 0.0);
     }
+    let at = row_cut(parallel, rows);
+    {
+        let (mut d_gates_a, mut d_gates_b) =
+            split_rows(&mut scratch.d_gates, (t_len, rows, g4), at);
+        let (d_h_a, d_h_b) = scratch.d_h.split_at_mut(at * h);
+        let (d_c_a, d_c_b) = scratch.d_c.split_at_mut(at * h);
+        let through_time =
+            |first: usize, d_g: &mut [&mut [f32]], d_h: &mut [f32], d_c: &mut [f32]| {
+                let n = d_h.len() / h;
+                for t in (0..t_len).rev() {
+                    let at_step = |width: usize, step: usize| {
+                        let start = (step * stride + first) * width;
+                        start..start + n * width
+                    };
+                    let act = &tape.gates[at_step(g4, t)];
+                    let c_prev = &tape.cells[at_step(h, t)];
+                    let c = &tape.cells[at_step(h, t + 1)];
+                    lstm_kernel::step_backward(act, c_prev, c, d_h, d_c, d_g[t], h);
+                    if t > 0 {
+                        mm_nt(d_h, false, (n, h, g4), d_g[t], l.w_hh);
+                    }
+                }
+            };
+        both(
+            parallel,
+            || through_time(0, &mut d_gates_a, d_h_a, d_c_a),
+            || through_time(at, &mut d_gates_b, d_h_b, d_c_b),
+        );
+    }
+    let d_gates = &scratch.d_gates[..t_len * rows * g4];
+    let step = |t: usize| &d_gates[t * rows * g4..(t + 1) * rows * g4];
+    both(
+        parallel,
+        || {
+            g_w_ih.fill(0.0);
+            g_b_ih.fill(0.0);
+            for t in (0..t_len).rev() {
+                let d_g = step(t);
+                // dW_ih += x_tᵀ · dG (input rows strided by T·E), db += Σ_rows dG.
+                matmul(
+                    g_w_ih,
+                    true,
+                    (e, g4, rows),
+                    &window[t * e..],
+                    (1, t_len * e),
+                    d_g,
+                    (g4, 1),
+                );
+                for row in d_g.chunks_exact(g4) {
+                    for (o, v) in g_b_ih.iter_mut().zip(row) {
+                        *o += v;
+                    }
+                }
+            }
+        },
+        || {
+            g_w_hh.fill(0.0);
+            for t in (1..t_len).rev() {
+                let h_prev = &tape.hidden[t * stride * h..t * stride * h + rows * h];
+                mm_tn(g_w_hh, true, (h, g4, rows), h_prev, step(t));
+            }
+        },
+    );
     // b_ih and b_hh enter as one sum: the same gradient.
     g_b_hh.copy_from_slice(g_b_ih);
 }
@@ -406,11 +520,11 @@ mod tests {
             "a changed entry is no shift"
         );
         let mut both = LstmTape::default();
-        lstm_forward(l, &[&now, &next], t_len, &mut both);
+        lstm_forward(l, &[&now, &next], t_len, &mut both, false);
         let z = lstm_output(&both, t_len, h).to_vec();
         for (k, part) in [&now, &next].iter().enumerate() {
             let mut alone = LstmTape::default();
-            lstm_forward(l, &[part], t_len, &mut alone);
+            lstm_forward(l, &[part], t_len, &mut alone, false);
             let z_alone = lstm_output(&alone, t_len, h);
             let z_part = &z[k * rows * h..(k + 1) * rows * h];
             assert!(

@@ -28,8 +28,8 @@ use crate::policy::{
     EncoderKind, LOG_STD_MAX, LOG_STD_MIN, NetConfig, SacConfig, SacModel, TANH_EPS,
 };
 use kernels::{
-    DenseRef, InputGrad, LstmRef, LstmScratch, LstmTape, adam_step, dense_backward, dense_forward,
-    lstm_backward, lstm_forward, lstm_output, relu_backward,
+    DenseRef, InputGrad, LstmRef, LstmScratch, LstmTape, adam_step, both, dense_backward,
+    dense_forward, lstm_backward, lstm_forward, lstm_output, relu_backward,
 };
 
 /// One owner's parameters (actor, critic, target, α) as flat vectors in the model's order, with
@@ -351,12 +351,20 @@ impl Encoder {
     }
 
     /// z for windows given in parts (stacked rows); nothing for `None`.
-    fn forward(&self, values: &[Vec<f32>], parts: &[&[f32]], t_len: usize, tape: &mut EncoderTape) {
+    /// `parallel`: inside the update's pool, an LSTM shares its work between two threads.
+    fn forward(
+        &self,
+        values: &[Vec<f32>],
+        parts: &[&[f32]],
+        t_len: usize,
+        tape: &mut EncoderTape,
+        parallel: bool,
+    ) {
         match self {
             Encoder::None => {}
             Encoder::Lstm { .. } => {
                 if let Some(l) = self.lstm(values) {
-                    lstm_forward(l, parts, t_len, &mut tape.lstm);
+                    lstm_forward(l, parts, t_len, &mut tape.lstm, parallel);
                 }
             }
             Encoder::Window(mlp) => {
@@ -391,6 +399,7 @@ impl Encoder {
         d_z: &[f32],
         tape: &mut EncoderTape,
         scratch: &mut [Vec<f32>; 2],
+        parallel: bool,
     ) {
         match self {
             Encoder::None => {}
@@ -418,6 +427,7 @@ impl Encoder {
                     d_z,
                     &mut tape.lstm_scratch,
                     [a, b, c, d],
+                    parallel,
                 );
                 for (&i, g) in [w_ih, w_hh, b_ih, b_hh].iter().zip(taken) {
                     grads[i] = g;
@@ -533,18 +543,6 @@ struct QWork {
 
 /// `a` and `b` at once on the current rayon pool when `parallel`, else one after the other.
 /// Either way each computes the same thing, so results do not depend on it.
-fn both<A: Send, B: Send>(
-    parallel: bool,
-    a: impl FnOnce() -> A + Send,
-    b: impl FnOnce() -> B + Send,
-) -> (A, B) {
-    if parallel {
-        rayon::join(a, b)
-    } else {
-        (a(), b())
-    }
-}
-
 /// Moves the gradients of `mlp`'s parameters out of `grads` into a vector of the same length
 /// (empty elsewhere), so two networks of one group can run their backward passes at once.
 fn take_grads(grads: &mut [Vec<f32>], mlp: &Mlp) -> Vec<Vec<f32>> {
@@ -825,6 +823,7 @@ impl FusedSac {
             &parts,
             t_len,
             &mut self.ws.actor,
+            false,
         );
         let ws = &mut self.ws;
         sample(
@@ -906,12 +905,13 @@ impl FusedSac {
                     &win_parts,
                     t_len,
                     actor_tape,
+                    parallel,
                 );
             },
             || {
-                target_enc.forward(&target_p.values, &[next_win], t_len, target_tape);
+                target_enc.forward(&target_p.values, &[next_win], t_len, target_tape, parallel);
                 if let Some(enc) = &critic.encoder {
-                    enc.forward(&critic_p.values, &[win], t_len, critic_tape);
+                    enc.forward(&critic_p.values, &[win], t_len, critic_tape, parallel);
                 }
             },
         );
@@ -1019,6 +1019,7 @@ impl FusedSac {
                 &ws.d_z,
                 &mut ws.critic_enc,
                 &mut ws.scratch,
+                parallel,
             );
         }
         self.critic_p.adam(self.config.learning_rate);
@@ -1026,7 +1027,13 @@ impl FusedSac {
         // --- actor -------------------------------------------------------------------------------
         // The critic (just updated) is frozen: gradients reach the action, not its weights.
         if let Some(enc) = &self.critic.encoder {
-            enc.forward(&self.critic_p.values, &[win], t_len, &mut ws.critic_enc);
+            enc.forward(
+                &self.critic_p.values,
+                &[win],
+                t_len,
+                &mut ws.critic_enc,
+                parallel,
+            );
         }
         let z_c = critic_z(
             &self.critic,
@@ -1217,6 +1224,7 @@ impl FusedSac {
                 &ws.d_z,
                 &mut ws.actor.enc,
                 &mut ws.scratch,
+                self.pool.is_some(),
             );
         }
         aux_loss
@@ -1232,10 +1240,11 @@ fn actor_forward(
     win_parts: &[&[f32]],
     t_len: usize,
     tape: &mut ActorTape,
+    parallel: bool,
 ) {
     actor
         .encoder
-        .forward(values, win_parts, t_len, &mut tape.enc);
+        .forward(values, win_parts, t_len, &mut tape.enc, parallel);
     let z = actor.encoder.z(&tape.enc, t_len);
     let (z_dim, obs_dim) = (actor.z_dim, actor.obs_dim);
     tape.features.clear();
