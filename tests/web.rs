@@ -1013,6 +1013,12 @@ fn every_port_checks_host_and_bounds_connections() {
     let during = threads();
     eprintln!("threads: {before} before, {during} with 300 half-open connections");
     assert!(during <= before + 70, "{before} → {during} threads");
+    // Even with every slot held, the page answers: a newcomer evicts the oldest slow head.
+    let state = raw_http(
+        port,
+        &format!("GET /state HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"),
+    );
+    assert!(state.starts_with("HTTP/1.1 200"), "{state}");
     // Past the header timeout (5 s) the slots are free again and the page answers.
     std::thread::sleep(Duration::from_secs(6));
     let state = raw_http(
@@ -1021,6 +1027,29 @@ fn every_port_checks_host_and_bounds_connections() {
     );
     assert!(state.starts_with("HTTP/1.1 200"), "{state}");
     drop(flood);
+    // The servers behind the guards listen on loopback ports any local process can find (`ss`);
+    // the control server answers only what its guard stamped.
+    let public = [port, viewer_port, grpc_port];
+    let backends: Vec<u16> = listening_sockets(live.0.id())
+        .into_iter()
+        .filter(|(ip, p)| ip.is_loopback() && !public.contains(p))
+        .map(|(_, p)| p)
+        .collect();
+    assert!(backends.len() >= 3, "{backends:?}");
+    for p in backends {
+        let direct = raw_http(
+            p,
+            &format!("GET /state HTTP/1.1\r\nHost: 127.0.0.1:{p}\r\nConnection: close\r\n\r\n"),
+        );
+        assert!(
+            !direct.contains("global_step"),
+            "port {p} served the sim's state around the guard: {}",
+            &direct[..direct.len().min(300)]
+        );
+        if direct.contains("control page") {
+            assert!(direct.starts_with("HTTP/1.1 403"), "{direct}");
+        }
+    }
     // A flood of step commands: the queue is bounded (refused with a reason past it), memory
     // stays flat, and pause stops the steps still queued.
     let rss_mb = || {

@@ -36,7 +36,14 @@ pub struct GuardLimits {
     pub idle_timeout: Duration,
     /// Answer only requests whose Host is localhost, 127.0.0.1 or `[::1]`.
     pub loopback_hosts_only: bool,
+    /// A per-session secret the guard adds to every HTTP/1 request it relays, as the header
+    /// [`GUARD_HEADER`] (after dropping any the client sent), so the server behind it can refuse
+    /// whatever reached its loopback port some other way.
+    pub secret: Option<String>,
 }
+
+/// The header that carries [`GuardLimits::secret`] to the server behind the guard.
+pub const GUARD_HEADER: &str = "X-Gaitscope-Guard";
 
 impl GuardLimits {
     pub fn new(loopback_hosts_only: bool) -> Self {
@@ -47,6 +54,7 @@ impl GuardLimits {
             max_body_bytes: 1024 * 1024,
             idle_timeout: Duration::from_secs(15),
             loopback_hosts_only,
+            secret: None,
         }
     }
 }
@@ -309,6 +317,18 @@ fn judge(head: &[u8], limits: &GuardLimits) -> Verdict {
         return Verdict::Pass { body };
     }
     let host = header(&text, "host").unwrap_or_default();
+    if is_loopback_host(host) {
+        Verdict::Pass { body }
+    } else {
+        Verdict::Refuse(
+            "403 Forbidden",
+            format!("this server is bound to loopback and answers only localhost, not '{host}'"),
+        )
+    }
+}
+
+/// Whether a `Host` header's value names this machine's loopback (any port).
+pub fn is_loopback_host(host: &str) -> bool {
     let name = match host.strip_prefix('[') {
         Some(v6) => v6
             .split(']')
@@ -321,14 +341,31 @@ fn judge(head: &[u8], limits: &GuardLimits) -> Verdict {
             .unwrap_or_default()
             .to_ascii_lowercase(),
     };
-    if matches!(name.as_str(), "127.0.0.1" | "localhost" | "[::1]") {
-        Verdict::Pass { body }
-    } else {
-        Verdict::Refuse(
-            "403 Forbidden",
-            format!("this server is bound to loopback and answers only localhost, not '{host}'"),
-        )
+    matches!(name.as_str(), "127.0.0.1" | "localhost" | "[::1]")
+}
+
+/// A request head as relayed: any [`GUARD_HEADER`] the client sent dropped, the session's
+/// added after the request line.
+fn stamped<'a>(head: &'a [u8], secret: Option<&str>) -> std::borrow::Cow<'a, [u8]> {
+    let Some(secret) = secret else {
+        return head.into();
+    };
+    let mut lines = head.split_inclusive(|&b| b == b'\n');
+    let mut out = Vec::with_capacity(head.len() + 64);
+    if let Some(request_line) = lines.next() {
+        out.extend_from_slice(request_line);
     }
+    out.extend_from_slice(format!("{GUARD_HEADER}: {secret}\r\n").as_bytes());
+    for line in lines {
+        let name = line.split(|&b| b == b':').next().unwrap_or_default();
+        if !name
+            .trim_ascii()
+            .eq_ignore_ascii_case(GUARD_HEADER.as_bytes())
+        {
+            out.extend_from_slice(line);
+        }
+    }
+    out.into()
 }
 
 fn header_end(buf: &[u8]) -> Option<usize> {
@@ -539,7 +576,8 @@ fn forward_requests(
         };
         // The head, then as much of the body as already arrived with it.
         let in_buf = (buf.len() - end).min(usize::try_from(body_len).unwrap_or(usize::MAX));
-        if server.write_all(&buf[..end + in_buf]).is_err() {
+        let head = stamped(&buf[..end], limits.secret.as_deref());
+        if server.write_all(&head).is_err() || server.write_all(&buf[end..end + in_buf]).is_err() {
             return None;
         }
         buf.drain(..end + in_buf);
@@ -646,7 +684,14 @@ mod tests {
                             }
                         }
                         buf.drain(..end + len);
-                        let body = format!("ok {len}");
+                        let mut body = format!("ok {len}");
+                        for line in text.split("\r\n").skip(1) {
+                            if let Some((name, value)) = line.split_once(':')
+                                && name.eq_ignore_ascii_case(GUARD_HEADER)
+                            {
+                                body.push_str(&format!(" guard={}", value.trim()));
+                            }
+                        }
                         let reply = format!(
                             "HTTP/1.1 200 OK\r\nContent-Length: {}\r\n\r\n{body}",
                             body.len()
@@ -869,5 +914,32 @@ mod tests {
         h2.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
         let _ = h2.read_to_string(&mut out);
         assert!(out.starts_with("HTTP/1.1 408"), "{out}");
+    }
+
+    /// Issue 49: the servers behind the guards answered whoever found their loopback ports.
+    /// The guard now stamps every request with the session's secret (and drops a client's
+    /// attempt at one), which the control server requires.
+    #[test]
+    fn the_guard_stamps_every_request_with_the_session_secret() {
+        let stamping = GuardLimits {
+            secret: Some("s3cret".into()),
+            ..limits()
+        };
+        let guard = Guard::spawn(
+            TcpListener::bind("127.0.0.1:0").unwrap(),
+            echo_backend(),
+            stamping,
+            "t",
+        )
+        .unwrap();
+        let mut s = TcpStream::connect(guard.addr()).unwrap();
+        s.write_all(b"GET / HTTP/1.1\r\nHost: localhost\r\n\r\n")
+            .unwrap();
+        assert_eq!(response(&mut s).1, "ok 0 guard=s3cret");
+        // A forged header, in any case, is dropped: the server sees the session's alone.
+        s.write_all(b"POST / HTTP/1.1\r\nx-gaitscope-guard: forged\r\nHost: localhost\r\nContent-Length: 2\r\n\r\nhi")
+            .unwrap();
+        assert_eq!(response(&mut s).1, "ok 2 guard=s3cret");
+        assert!(is_loopback_host("LocalHost:8080") && !is_loopback_host("localhost.evil"));
     }
 }

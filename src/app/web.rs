@@ -160,6 +160,9 @@ pub enum WebError {
 /// and size, Host check on loopback), and the loopback ports of the servers behind them.
 pub struct Front {
     guards: Vec<super::guard::Guard>,
+    /// What the control page's guard stamps on every request it relays
+    /// ([`super::guard::GUARD_HEADER`]); the control server refuses a request without it.
+    control_secret: String,
     pub control_backend: u16,
     pub viewer_backend: u16,
     pub grpc_backend: u16,
@@ -171,6 +174,9 @@ impl Front {
     pub fn bind(options: &WebOptions) -> Result<Self, WebError> {
         use super::guard::{Guard, GuardLimits, free_loopback_port};
         let limits = GuardLimits::new(options.is_loopback());
+        // 128 bits from the OS-seeded generator: a local process that finds the loopback
+        // port behind the guard cannot guess it.
+        let control_secret = format!("{:032x}", rand::random::<u128>());
         let mut guards = Vec::new();
         let mut backends = Vec::new();
         for (what, port) in [
@@ -187,11 +193,17 @@ impl Front {
             let listener = TcpListener::bind(addr).map_err(bind_error)?;
             let backend = free_loopback_port().map_err(bind_error)?;
             let to = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), backend);
-            guards.push(Guard::spawn(listener, to, limits.clone(), what).map_err(bind_error)?);
+            // Rerun's servers take no secret; our control server requires one.
+            let limits = GuardLimits {
+                secret: (guards.is_empty()).then(|| control_secret.clone()),
+                ..limits.clone()
+            };
+            guards.push(Guard::spawn(listener, to, limits, what).map_err(bind_error)?);
             backends.push(backend);
         }
         Ok(Self {
             guards,
+            control_secret,
             control_backend: backends[0],
             viewer_backend: backends[1],
             grpc_backend: backends[2],
@@ -210,7 +222,7 @@ pub struct WebServer {
     options: WebOptions,
     control: tiny_http::Server,
     _viewer: re_web_viewer_server::WebViewerServer,
-    _front: Front,
+    front: Front,
     /// Checkpoint folders the page may open (the page never names an arbitrary path).
     checkpoints: Vec<PathBuf>,
     /// A search folder's findings (`live --search DIR`), for the page's "next failure".
@@ -252,7 +264,7 @@ impl WebServer {
             options,
             control,
             _viewer: viewer,
-            _front: front,
+            front,
             checkpoints,
             findings,
             viewer_batch: crate::telemetry::web_stream_batch(),
@@ -384,13 +396,13 @@ impl WebServer {
                 .find(|h| h.field.equiv(name))
                 .map(|h| h.value.as_str().to_string())
         };
+        // Only what came through the guard: its loopback port is open to any local process.
+        if get(super::guard::GUARD_HEADER).as_deref() != Some(self.front.control_secret.as_str()) {
+            return Err("this port is served through the control page's public port only".into());
+        }
         if self.options.is_loopback() {
             let host = get("Host").unwrap_or_default();
-            let name = host
-                .rsplit_once(':')
-                .map_or(host.as_str(), |(h, _)| h)
-                .to_ascii_lowercase();
-            if !matches!(name.as_str(), "127.0.0.1" | "localhost" | "[::1]") {
+            if !super::guard::is_loopback_host(&host) {
                 return Err(format!(
                     "this server is bound to loopback and answers only localhost, not '{host}'"
                 ));
