@@ -992,3 +992,34 @@ fn fifos_and_devices_given_as_files_are_refused_not_waited_on() {
         assert!(!said.contains("panicked"), "{said}");
     }
 }
+
+/// `live --save` names its file only if it reads back whole when a sink did not flush: Rerun's
+/// decoder finds a file cut off by a failed write (here: cut by hand) and says where it stays.
+#[test]
+fn a_saved_stream_cut_off_mid_message_does_not_read_back_whole() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ant.rrd");
+    let ok = gaitscope(&[
+        "record",
+        "--episodes",
+        "1",
+        "--max-steps",
+        "60",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok.status.success(), "{}", stderr(&ok));
+    let bytes = std::fs::read(&out).unwrap();
+    let session = dir.path().join("session.rrd");
+    let file = gaitscope::telemetry::PartialFile::new(&session);
+    std::fs::write(file.partial(), &bytes).unwrap();
+    let messages = file.check_whole().unwrap();
+    assert!(messages > 10, "{messages} messages");
+    for cut in [bytes.len() - 7, bytes.len() / 2, 100] {
+        std::fs::write(file.partial(), &bytes[..cut]).unwrap();
+        let e = file.check_whole().unwrap_err().to_string();
+        assert!(e.contains("breaks off after"), "cut at {cut}: {e}");
+        assert!(e.contains("session.rrd.partial"), "{e}");
+        assert!(!session.exists());
+    }
+}

@@ -1410,3 +1410,38 @@ fn the_page_steps_through_a_search_folders_failures() {
     let _ = post(port, r#"{"command": "quit"}"#);
     let _ = wait_exit(&mut live, "quit");
 }
+
+/// Issue 49: `live --web --save` on a full disk (here: a file-size limit) renamed its cut-off
+/// file into place — the file sink's failed flush looked like a closed viewer's. Now only a
+/// file that reads back whole takes the name asked for; a cut-off one stays `.partial`, said so.
+#[test]
+fn live_save_on_a_full_disk_leaves_nothing_under_the_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let save = dir.path().join("session.rrd");
+    let [port, viewer_port, grpc_port] = free_ports::<3>();
+    let out = Command::new("bash")
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .arg("-c")
+        // 200 KB at most per file; SIGXFSZ ignored so the write fails with EFBIG instead.
+        .arg(format!(
+            "trap '' XFSZ; ulimit -f 200; exec {} live --web --checkpoint checkpoints/encoder-lstm \
+             --exit-after 8 --speed 8 --port {port} --viewer-port {viewer_port} --grpc-port {grpc_port} \
+             --save {}",
+            env!("CARGO_BIN_EXE_gaitscope"),
+            save.display()
+        ))
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("could not be written completely"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("session.rrd.partial"), "{stderr}");
+    assert!(!stderr.contains("session saved to"), "{stderr}");
+    assert!(!save.exists(), "a cut-off file took the name");
+    assert!(dir.path().join("session.rrd.partial").exists());
+}

@@ -224,9 +224,6 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
             return Err(e.into());
         }
     };
-    if let Some(f) = &save_file {
-        f.rename_into_place()?;
-    }
     for s in &report.speeds {
         eprintln!(
             "sim at {}×: {:.1} of {:.0} env steps/s ({:.0} % of real time asked for) over {:.1} s",
@@ -236,6 +233,16 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
             100.0 * s.keeps_up(),
             s.seconds
         );
+    }
+    if let Some(f) = &save_file {
+        // A sink that did not flush may be the file (a full disk), not the viewer: only a file
+        // that reads back whole takes the name asked for.
+        if unflushed.is_some()
+            && let Err(e) = f.check_whole()
+        {
+            return Err(e.into());
+        }
+        f.rename_into_place()?;
     }
     if let Some(path) = &args.save {
         eprintln!("session saved to {}", path.display());

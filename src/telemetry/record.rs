@@ -68,6 +68,47 @@ impl PartialFile {
         })
     }
 
+    /// Whether the file written so far reads back whole with Rerun's own decoder: every
+    /// message complete, none cut off by a failed write. For a session whose stream did not
+    /// flush, where a full disk and a closed viewer look alike. The file stays where it is.
+    pub fn check_whole(&self) -> Result<usize, RecordError> {
+        let incomplete = |reason: String| RecordError::Incomplete {
+            path: self.path.clone(),
+            reason: format!(
+                "{reason}; what was written stays at {}",
+                self.partial.display()
+            )
+            .into(),
+        };
+        let file = crate::files::open_regular(&self.partial)
+            .map_err(|e| incomplete(format!("reading it back: {e}")))?;
+        let len = file
+            .metadata()
+            .map_err(|e| incomplete(format!("reading it back: {e}")))?
+            .len();
+        let mut messages = 0;
+        // The decoder ends quietly at a message cut off by the end of the file; what it did not
+        // consume is that cut-off message.
+        let mut decoded = re_log_encoding::DecoderApp::decode_lazy(std::io::BufReader::new(file));
+        for message in &mut decoded {
+            let _whole = message.map_err(|e| {
+                incomplete(format!(
+                    "it breaks off after {messages} whole messages ({e})"
+                ))
+            })?;
+            messages += 1;
+        }
+        let read = decoded.num_bytes_processed();
+        if read < len {
+            return Err(incomplete(format!(
+                "it breaks off after {messages} whole messages, {} bytes into the next (is the \
+                 disk full, or the file larger than the system allows?)",
+                len - read
+            )));
+        }
+        Ok(messages)
+    }
+
     /// Removes the incomplete file; the error says why it is incomplete.
     fn abandon(&self, e: TelemetryError) -> RecordError {
         let _ = std::fs::remove_file(&self.partial);
