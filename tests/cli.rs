@@ -910,7 +910,64 @@ fn fifos_and_devices_given_as_files_are_refused_not_waited_on() {
     std::os::unix::fs::symlink("/dev/zero", zero_meta.join("checkpoint.json")).unwrap();
     let actions = write(dir.path(), "actions.json", "[[0,0,0,0,0,0,0,0]]");
     let fifo_s = fifo.to_string_lossy().into_owned();
+    // A checkpoint whose probe.json is a FIFO (record reads the probe beside the weights), a
+    // run folder whose metrics.jsonl is one, and an SB3 archive that is one.
+    let probed = dir.path().join("probed");
+    std::fs::create_dir(&probed).unwrap();
+    for name in ["checkpoint.json", "model.safetensors"] {
+        std::fs::copy(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("checkpoints/encoder-lstm")
+                .join(name),
+            probed.join(name),
+        )
+        .unwrap();
+    }
+    let run = dir.path().join("run");
+    std::fs::create_dir(&run).unwrap();
+    let zip = dir.path().join("sac_ant.zip");
+    for f in [
+        probed.join("probe.json"),
+        run.join("metrics.jsonl"),
+        zip.clone(),
+    ] {
+        assert!(Command::new("mkfifo").arg(&f).status().unwrap().success());
+    }
+    let path = |p: &Path| p.to_string_lossy().into_owned();
     let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            vec![
+                "record".into(),
+                "--checkpoint".into(),
+                path(&probed),
+                "--episodes".into(),
+                "1".into(),
+                "--max-steps".into(),
+                "5".into(),
+                "--out".into(),
+                path(&dir.path().join("p.rrd")),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
+                "curves".into(),
+                "--run".into(),
+                path(&run),
+                "--out".into(),
+                path(&dir.path().join("c.png")),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
+                "import-sb3".into(),
+                path(&zip),
+                "--out".into(),
+                path(&dir.path().join("imported")),
+            ],
+            "not a regular file",
+        ),
         (
             vec![
                 "rollout".into(),

@@ -156,20 +156,19 @@ impl Archive {
             path: path.to_owned(),
             reason,
         };
-        let size = std::fs::metadata(path)
-            .map_err(|source| Sb3Error::Read {
-                path: path.to_owned(),
-                source,
-            })?
-            .len();
-        if size > MAX_ARCHIVE_BYTES {
-            return Err(not_archive(format!(
-                "{size} bytes; an SB3 SAC archive of the Ant is a few MB (at most {MAX_ARCHIVE_BYTES} read)"
-            )));
-        }
-        let bytes = std::fs::read(path).map_err(|source| Sb3Error::Read {
-            path: path.to_owned(),
-            source,
+        // Only a regular file, and at most the bound: a FIFO or a device is refused before a
+        // byte is read, a file past the bound before it is read.
+        let bytes = crate::files::read_capped(path, MAX_ARCHIVE_BYTES).map_err(|source| {
+            if source.kind() == std::io::ErrorKind::FileTooLarge {
+                not_archive(format!(
+                    "{source}; an SB3 SAC archive of the Ant is a few MB (at most {MAX_ARCHIVE_BYTES} read)"
+                ))
+            } else {
+                Sb3Error::Read {
+                    path: path.to_owned(),
+                    source,
+                }
+            }
         })?;
         let mut zip = zip::ZipArchive::new(std::io::Cursor::new(&bytes))
             .map_err(|e| not_archive(format!("not a readable zip ({e})")))?;

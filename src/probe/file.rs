@@ -34,12 +34,19 @@ pub struct ProbeFile {
     pub pca: PcaBasis,
 }
 
+/// The most `probe.json` may hold.
+const MAX_PROBE_BYTES: u64 = 64 * 1024 * 1024;
+
 impl ProbeFile {
     pub fn load(dir: &Path) -> Result<Self, ProbeError> {
         let path = dir.join(PROBE_FILE);
-        let text = std::fs::read_to_string(&path).map_err(|e| ProbeError::Read {
-            path: path.clone(),
-            reason: e.into(),
+        // A probe file holds two linear probes and a PCA basis: kilobytes. The bound keeps a
+        // symlink to /dev/zero or a FIFO from being read at all.
+        let text = crate::files::read_text_capped(&path, MAX_PROBE_BYTES).map_err(|e| {
+            ProbeError::Read {
+                path: path.clone(),
+                reason: e.into(),
+            }
         })?;
         serde_json::from_str(&text).map_err(|e| ProbeError::Read {
             path,

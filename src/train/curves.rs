@@ -72,6 +72,9 @@ pub enum CurvesError {
     Plot(#[from] PlotError),
 }
 
+/// The most a run's `metrics.jsonl` may hold: a million-step run writes a few MB.
+pub(crate) const MAX_METRICS_BYTES: u64 = 1024 * 1024 * 1024;
+
 impl RunMetrics {
     /// Reads `metrics.jsonl` from a run folder (or the file itself). A cut-off last line (a run
     /// killed mid-write) is skipped; any other malformed line is an error naming it.
@@ -81,9 +84,11 @@ impl RunMetrics {
         } else {
             run.to_path_buf()
         };
-        let text = std::fs::read_to_string(&path).map_err(|e| CurvesError::Read {
-            path: path.clone(),
-            reason: e.into(),
+        let text = crate::files::read_text_capped(&path, MAX_METRICS_BYTES).map_err(|e| {
+            CurvesError::Read {
+                path: path.clone(),
+                reason: e.into(),
+            }
         })?;
         let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
         let mut metrics = RunMetrics::default();

@@ -88,6 +88,10 @@ pub fn read_resumes(dir: &Path) -> Result<Vec<ResumeRecord>, TrainError> {
 /// The most a train_state.json may hold: a few KB, and a line more per resume.
 const MAX_STATE_BYTES: u64 = 4 << 20;
 
+/// The most the optimiser's or the auxiliary heads' safetensors may hold: Adam's two moments of
+/// the largest model here are a few MB.
+const MAX_STATE_FILE_BYTES: u64 = 256 << 20;
+
 /// A run's train_state.json: a regular file within [`MAX_STATE_BYTES`], parsed.
 fn read_state(path: &Path) -> Result<TrainState, TrainError> {
     let text = crate::files::read_text_capped(path, MAX_STATE_BYTES).map_err(|source| {
@@ -484,9 +488,11 @@ pub(super) fn load_run(
     }
     let mut learner = SacLearner::new(model, meta.sac.clone(), device.clone());
     let opt_path = dir.join(OPTIMIZER_FILE);
-    let bytes = std::fs::read(&opt_path).map_err(|source| CheckpointError::Read {
-        path: opt_path.clone(),
-        source,
+    let bytes = crate::files::read_capped(&opt_path, MAX_STATE_FILE_BYTES).map_err(|source| {
+        CheckpointError::Read {
+            path: opt_path.clone(),
+            source,
+        }
     })?;
     if let Some(expected) = state.optimizer_crc32 {
         let found = crc32fast::hash(&bytes);
@@ -546,7 +552,7 @@ pub(super) fn load_aux(
         path: path.clone(),
         reason: reason.into(),
     };
-    let bytes = std::fs::read(&path)
+    let bytes = crate::files::read_capped(&path, MAX_STATE_FILE_BYTES)
         .map_err(|e| bad(format!("cannot read ({e}); the run trains with --aux")))?;
     let found = crc32fast::hash(&bytes);
     if state.aux_crc32 != Some(found) {
@@ -576,8 +582,15 @@ pub(super) fn load_aux(
 /// how many lines it dropped because they were not JSON with a step.
 pub(super) fn truncate_metrics(dir: &Path, steps_done: u64) -> Result<(), TrainError> {
     let path = dir.join(METRICS_FILE);
-    let Ok(text) = std::fs::read_to_string(&path) else {
-        return Ok(());
+    let text = match crate::files::read_text_capped(&path, super::curves::MAX_METRICS_BYTES) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => {
+            return Err(TrainError::State {
+                path,
+                reason: format!("cannot read the run's log ({e})").into(),
+            });
+        }
     };
     let mut corrupt = 0usize;
     let kept: String = text
