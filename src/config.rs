@@ -145,28 +145,19 @@ impl GaitConfig {
     /// Reads a JSON config; missing fields take their defaults, unknown fields are an error.
     /// Only a regular file is read, and at most [`MAX_CONFIG_BYTES`] of it.
     pub fn from_json_file(path: &Path) -> Result<Self, ConfigError> {
-        use std::io::Read;
-        let read_err = |source| ConfigError::Read {
-            path: path.to_owned(),
-            source,
-        };
-        let meta = std::fs::metadata(path).map_err(read_err)?;
-        if !meta.is_file() {
-            return Err(read_err(std::io::Error::new(
-                std::io::ErrorKind::InvalidInput,
-                "not a regular file",
-            )));
-        }
-        let mut text = String::new();
-        std::fs::File::open(path)
-            .and_then(|f| f.take(MAX_CONFIG_BYTES + 1).read_to_string(&mut text))
-            .map_err(read_err)?;
-        if text.len() as u64 > MAX_CONFIG_BYTES {
-            return Err(ConfigError::Invalid(format!(
-                "{} is larger than the {MAX_CONFIG_BYTES} bytes a config may have",
-                path.display()
-            )));
-        }
+        let text = crate::files::read_text_capped(path, MAX_CONFIG_BYTES).map_err(|source| {
+            if source.kind() == std::io::ErrorKind::FileTooLarge {
+                ConfigError::Invalid(format!(
+                    "{} is larger than the {MAX_CONFIG_BYTES} bytes a config may have",
+                    path.display()
+                ))
+            } else {
+                ConfigError::Read {
+                    path: path.to_owned(),
+                    source,
+                }
+            }
+        })?;
         let config: Self = serde_json::from_str(&text).map_err(|source| ConfigError::Parse {
             path: path.to_owned(),
             source,

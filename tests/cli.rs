@@ -961,6 +961,29 @@ fn fifos_and_devices_given_as_files_are_refused_not_waited_on() {
         ),
         (
             vec![
+                "eval".into(),
+                "--checkpoint".into(),
+                "checkpoints/baseline".into(),
+                "--scenario".into(),
+                fifo_s.clone(),
+                "--episodes".into(),
+                "1".into(),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
+                "train".into(),
+                "--check".into(),
+                "--config".into(),
+                fifo_s.clone(),
+                "--out".into(),
+                path(&dir.path().join("never")),
+            ],
+            "not a regular file",
+        ),
+        (
+            vec![
                 "import-sb3".into(),
                 path(&zip),
                 "--out".into(),

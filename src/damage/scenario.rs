@@ -54,16 +54,6 @@ pub const MAX_SCENARIO_BYTES: usize = 1 << 20;
 /// Edits in one scenario, at most.
 pub const MAX_SCENARIO_EDITS: usize = 10_000;
 
-/// Reads at most one byte more than [`MAX_SCENARIO_BYTES`], so an endless file stops there.
-fn read_capped(path: &Path) -> std::io::Result<String> {
-    use std::io::Read;
-    let mut text = String::new();
-    std::fs::File::open(path)?
-        .take(MAX_SCENARIO_BYTES as u64 + 1)
-        .read_to_string(&mut text)?;
-    Ok(text)
-}
-
 /// Parses JSON, refusing an object key given twice at any depth (serde_json keeps the last one
 /// silently): scenarios and saved states both read through it.
 pub fn strict_json(text: &str) -> Result<Value, serde_json::Error> {
@@ -498,17 +488,21 @@ impl Scenario {
             return Self::from_json(text, name);
         }
         let path = Path::new(name_or_path);
-        let text = read_capped(path).map_err(|e| ScenarioError::Read {
-            path: name_or_path.to_string(),
-            reason: if path.extension().is_none() && !path.exists() {
-                format!(
-                    "{e} (not a file, nor a built-in scenario: {})",
-                    OOD_SUITE.map(|(n, _)| n).join(", ")
-                )
-            } else {
-                e.to_string()
-            },
-        })?;
+        // A regular file only (a FIFO would block), read no further than the bound.
+        let text =
+            crate::files::read_text_capped(path, MAX_SCENARIO_BYTES as u64).map_err(|e| {
+                ScenarioError::Read {
+                    path: name_or_path.to_string(),
+                    reason: if path.extension().is_none() && !path.exists() {
+                        format!(
+                            "{e} (not a file, nor a built-in scenario: {})",
+                            OOD_SUITE.map(|(n, _)| n).join(", ")
+                        )
+                    } else {
+                        e.to_string()
+                    },
+                }
+            })?;
         Self::from_json(&text, name_or_path)
     }
 

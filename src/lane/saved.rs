@@ -147,14 +147,12 @@ impl StartState {
 
     /// Reads a state file: a saved state (it declares `"format"`) or a bare one.
     pub fn read(path: &Path) -> Result<Self, StateFileError> {
-        use std::io::Read;
-        let mut text = String::new();
-        crate::files::open_regular(path)
-            .and_then(|f| f.take(MAX_STATE_BYTES + 1).read_to_string(&mut text))
-            .map_err(|source| StateFileError::Read {
+        let text = crate::files::read_text_capped(path, MAX_STATE_BYTES).map_err(|source| {
+            StateFileError::Read {
                 path: path.to_owned(),
                 source,
-            })?;
+            }
+        })?;
         Self::parse(&text).map_err(|reason| StateFileError::Malformed {
             path: path.to_owned(),
             reason: reason.into(),
