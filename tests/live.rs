@@ -627,6 +627,99 @@ mod panel {
         sim.shutdown().unwrap();
     }
 
+    /// Issue 48: the panel loads a search folder and "Next failure" replays each held-out
+    /// episode a finding broke, from a reset with its scenario and seed (as the page does).
+    #[test]
+    fn the_panel_loads_a_search_folder_and_steps_through_its_failures() {
+        let out = tempfile::tempdir().unwrap();
+        let found = out.path().join("search");
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"))
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .args([
+                "search",
+                "--checkpoint",
+                "checkpoints/encoder-lstm",
+                "--budget",
+                "3",
+            ])
+            .args([
+                "--evaluations",
+                "6",
+                "--episodes",
+                "4",
+                "--held-out",
+                "8",
+                "--top",
+                "1",
+            ])
+            .args([
+                "--shrink-evaluations",
+                "0",
+                "--max-steps",
+                "150",
+                "--latest-onset",
+                "10",
+            ])
+            .arg("--out")
+            .arg(&found)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let findings = gaitscope::search::findings(&found).unwrap();
+        let failing: Vec<(String, u64)> = findings
+            .iter()
+            .flat_map(|f| f.failing_seeds.iter().map(|&s| (f.name.clone(), s)))
+            .collect();
+        assert!(failing.len() >= 2, "{failing:?}");
+
+        let (_dir, sim, _storage) = started(LiveCondition::Severe);
+        // A folder that is not a search: said in the panel, nothing offered.
+        let mut other = harness(&sim);
+        other.run();
+        other.get_by_label("Search folder").focus();
+        other.run();
+        other
+            .get_by_label("Search folder")
+            .type_text(&out.path().to_string_lossy());
+        other.run();
+        other.get_by_label("Load findings").click();
+        other.run();
+        assert!(other.query_by_label("Next failure").is_none());
+        assert!(other.query_by_label_contains("search.json").is_some());
+        drop(other);
+        // The search folder itself.
+        let mut ui = harness(&sim);
+        ui.run();
+        ui.get_by_label("Search folder").focus();
+        ui.run();
+        ui.get_by_label("Search folder")
+            .type_text(&found.to_string_lossy());
+        ui.run();
+        ui.get_by_label("Load findings").click();
+        ui.run();
+        let count = format!(
+            "{} failing episodes in the search's findings",
+            failing.len()
+        );
+        assert!(ui.query_by_label(&count).is_some(), "{count}");
+        for (k, (name, seed)) in failing[..2].iter().enumerate() {
+            let handled = sim.snapshot().commands_handled;
+            ui.get_by_label("Next failure").click();
+            ui.run();
+            let s = sim.wait_for(WAIT, |s| s.commands_handled >= handled + 3);
+            assert_eq!(s.episode_seed, *seed);
+            assert_eq!(
+                s.scenario.as_deref(),
+                Some(format!("search-{name}").as_str())
+            );
+            assert_eq!(s.lanes[0].step, 0, "from a reset");
+            ui.run();
+            let shown = format!("{} of {}: {name}, seed {seed} — ", k + 1, failing.len());
+            assert!(ui.query_by_label_contains(&shown).is_some(), "{shown}");
+        }
+        sim.shutdown().unwrap();
+    }
+
     #[test]
     fn resume_and_pause_buttons_drive_the_sim() {
         let (_dir, sim, _storage) = started(LiveCondition::Severe);

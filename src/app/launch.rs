@@ -158,7 +158,7 @@ pub fn run_live(
             };
             let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
             let sim = SimHandle::spawn(rec, launch.setup)?;
-            let panel = run_panel(&sim, offered, launch.exit_after);
+            let panel = run_panel(&sim, offered, launch.findings, launch.exit_after);
             let finished = sim.shutdown();
             note(LaunchNote::Panel(panel?));
             // A person closing the panel keeps the viewer to scrub the session; a scripted
@@ -212,10 +212,12 @@ pub fn run_live(
 fn run_panel(
     sim: &SimHandle,
     checkpoints: Vec<PathBuf>,
+    findings: Vec<crate::search::Finding>,
     exit_after: Option<Duration>,
 ) -> Result<PanelStats, LaunchError> {
     let options = super::panel::PanelOptions {
         checkpoints,
+        findings,
         exit_after,
     };
     Ok(super::panel::run_panel(sim.link(), options)?)
@@ -225,6 +227,7 @@ fn run_panel(
 fn run_panel(
     _sim: &SimHandle,
     _checkpoints: Vec<PathBuf>,
+    _findings: Vec<crate::search::Finding>,
     _exit_after: Option<Duration>,
 ) -> Result<PanelStats, LaunchError> {
     Err(LaunchError::NoPanel)

@@ -75,6 +75,21 @@ pub struct Panel {
     push_force: [f64; 3],
     push_steps: usize,
     push_error: Option<String>,
+    /// A `gaitscope search` folder: its field, the held-out episodes its findings broke, the
+    /// one shown last, and why the folder could not be read.
+    search_text: String,
+    failures: Vec<Failure>,
+    failure_at: Option<usize>,
+    search_error: Option<String>,
+}
+
+/// One held-out episode a search finding broke: replayed from a reset with its scenario and
+/// seed ("Next failure", as on the web page).
+struct Failure {
+    name: String,
+    description: String,
+    scenario: crate::damage::scenario::Scenario,
+    seed: u64,
 }
 
 impl Panel {
@@ -100,7 +115,108 @@ impl Panel {
             push_force: [0.0, 40.0, 0.0],
             push_steps: 5,
             push_error: None,
+            search_text: String::new(),
+            failures: Vec::new(),
+            failure_at: None,
+            search_error: None,
         }
+    }
+
+    /// The panel with a search folder's findings loaded (`live --search DIR`).
+    pub fn with_findings(mut self, findings: Vec<crate::search::Finding>) -> Self {
+        self.set_findings(findings);
+        self
+    }
+
+    fn set_findings(&mut self, findings: Vec<crate::search::Finding>) {
+        self.failures.clear();
+        self.failure_at = None;
+        self.search_error = None;
+        for f in findings {
+            // The search wrote these files itself; one that does not parse is said, not skipped.
+            let scenario = match crate::damage::scenario::Scenario::from_json(
+                &f.scenario,
+                &format!("search-{}", f.name),
+            ) {
+                Ok(s) => s,
+                Err(e) => {
+                    self.search_error = Some(e.to_string());
+                    continue;
+                }
+            };
+            for &seed in &f.failing_seeds {
+                self.failures.push(Failure {
+                    name: f.name.clone(),
+                    description: f.description.clone(),
+                    scenario: scenario.clone(),
+                    seed,
+                });
+            }
+        }
+    }
+
+    /// The next failing episode from a reset: its scenario, its seed.
+    fn next_failure(&mut self) {
+        if self.failures.is_empty() {
+            return;
+        }
+        let at = self.failure_at.map_or(0, |i| (i + 1) % self.failures.len());
+        self.failure_at = Some(at);
+        let (scenario, seed) = (self.failures[at].scenario.clone(), self.failures[at].seed);
+        self.send(Command::SetScenario(Some(scenario)));
+        self.send(Command::SetSeed(seed));
+        self.send(Command::Reset);
+    }
+
+    fn search_rows(&mut self, ui: &mut egui::Ui) {
+        ui.horizontal(|ui| {
+            let label = ui.label("Search folder").id;
+            ui.add(
+                egui::TextEdit::singleline(&mut self.search_text)
+                    .hint_text("a gaitscope search --out folder")
+                    .desired_width(150.0),
+            )
+            .labelled_by(label);
+            if ui.button("Load findings").clicked() {
+                match crate::search::findings(std::path::Path::new(self.search_text.trim())) {
+                    Ok(findings) => self.set_findings(findings),
+                    Err(e) => self.search_error = Some(e.to_string()),
+                }
+            }
+        });
+        if self.failures.is_empty() {
+            return;
+        }
+        ui.horizontal(|ui| {
+            if ui
+                .button("Next failure")
+                .on_hover_text(
+                    "the next held-out episode a search finding broke: its scenario and seed, \
+                     from a reset",
+                )
+                .clicked()
+            {
+                self.next_failure();
+            }
+            let text = match self.failure_at {
+                Some(i) => {
+                    let f = &self.failures[i];
+                    format!(
+                        "{} of {}: {}, seed {} — {}",
+                        i + 1,
+                        self.failures.len(),
+                        f.name,
+                        f.seed,
+                        f.description
+                    )
+                }
+                None => format!(
+                    "{} failing episodes in the search's findings",
+                    self.failures.len()
+                ),
+            };
+            ui.label(text);
+        });
     }
 
     /// The snapshot the panel last drew.
@@ -355,7 +471,11 @@ impl Panel {
                 self.send(Command::SaveState(PathBuf::from(self.state_text.trim())));
             }
         });
-        if let Some(e) = &self.scenario_error {
+        self.search_rows(ui);
+        for e in [&self.scenario_error, &self.search_error]
+            .into_iter()
+            .flatten()
+        {
             ui.colored_label(Color32::from_rgb(230, 90, 60), e);
         }
         ui.label(
@@ -742,6 +862,8 @@ fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64) {
 /// How the panel window opens.
 pub struct PanelOptions {
     pub checkpoints: Vec<PathBuf>,
+    /// A search folder's findings, for "Next failure" (`live --search DIR`).
+    pub findings: Vec<crate::search::Finding>,
     /// Close after this long (scripted runs and measurements).
     pub exit_after: Option<Duration>,
 }
@@ -815,7 +937,7 @@ pub fn run_panel(link: SimLink, options: PanelOptions) -> Result<PanelStats, Pan
         ..Default::default()
     };
     let app_stats = stats.clone();
-    let panel = Panel::new(link, options.checkpoints);
+    let panel = Panel::new(link, options.checkpoints).with_findings(options.findings);
     eframe::run_native(
         "gaitscope live",
         native,

@@ -57,9 +57,9 @@ pub(crate) struct LiveArgs {
     /// --save-state-at`, the panel's "Save state") with its damage, or a bare {"qpos", "qvel"}.
     #[arg(long, value_name = "FILE")]
     init_state: Option<PathBuf>,
-    /// A `gaitscope search` folder: the page lists its findings and steps through the held-out
-    /// episodes they broke ("next failure"; with --web).
-    #[arg(long, value_name = "DIR", requires = "web")]
+    /// A `gaitscope search` folder: the panel or the page lists its findings and steps through
+    /// the held-out episodes they broke ("Next failure"; the panel can also load one itself).
+    #[arg(long, value_name = "DIR")]
     search: Option<PathBuf>,
     /// Start with the attribution view on: why z moved, per step (the panel and page toggle it).
     #[arg(long)]
