@@ -207,6 +207,12 @@ fn bad_search_input_is_refused_clearly() {
         ),
         (vec!["--reverse"], "--against"),
         (
+            vec!["--push-impulse", "0"],
+            "--push-impulse must lie in (0, 500] N·s",
+        ),
+        (vec!["--push-impulse", "501"], "--push-impulse must lie in"),
+        (vec!["--push-impulse", "inf"], "--push-impulse must lie in"),
+        (
             vec!["--method", "annealing"],
             "possible values: cma, random",
         ),
@@ -229,4 +235,139 @@ fn bad_search_input_is_refused_clearly() {
         .unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("/nonexistent"));
+}
+
+/// An episode as (seed, success, steps).
+type Episode = (u64, bool, u64);
+
+/// The held-out outcomes of one file's schedule, and eval --scenario's replay of that file.
+fn replayed_vs_searched(
+    dir: &Path,
+    file: &str,
+    nth_held_out: usize,
+) -> (Vec<Episode>, Vec<Episode>) {
+    let log = lines(&dir.join("candidates.jsonl"));
+    let held = log
+        .iter()
+        .filter(|c| c["phase"] == "held-out")
+        .nth(nth_held_out)
+        .unwrap();
+    let out = dir.join(format!("eval-{file}"));
+    let o = gaitscope(&[
+        "eval",
+        "--checkpoint",
+        "checkpoints/baseline",
+        "--scenario",
+        dir.join(file).to_str().unwrap(),
+        "--conditions",
+        "healthy",
+        "--episodes",
+        "6",
+        "--max-steps",
+        "150",
+        "--out",
+        out.to_str().unwrap(),
+    ])
+    .output()
+    .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let eval: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("eval.json")).unwrap()).unwrap();
+    let triple = |e: &Value| {
+        (
+            e["seed"].as_u64().unwrap(),
+            e["success"].as_bool().unwrap(),
+            e["steps"].as_u64().unwrap(),
+        )
+    };
+    let replayed = eval["episodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["condition"].as_str().unwrap().starts_with("search-"))
+        .map(triple)
+        .collect();
+    let searched = held["outcomes"][0]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(triple)
+        .collect();
+    (replayed, searched)
+}
+
+#[test]
+fn a_search_with_pushes_writes_pushes_that_replay_and_stay_within_the_impulse() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a");
+    let o = gaitscope(&ARGS)
+        .args([
+            "--push-impulse",
+            "30",
+            "--threads",
+            "2",
+            "--out",
+            a.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let log = lines(&a.join("candidates.jsonl"));
+    let mut pushes = 0;
+    for c in &log {
+        if let Some(p) = c["schedule"].get("push") {
+            pushes += 1;
+            let impulse = p["newtons"].as_f64().unwrap() * p["steps"].as_f64().unwrap() * 0.05;
+            assert!(impulse <= 30.0 + 1e-9, "{c}");
+            assert!(p["onset"].as_u64().unwrap() <= 40, "{c}");
+        }
+    }
+    assert!(
+        pushes >= 6,
+        "only {pushes} of {} candidates pushed",
+        log.len()
+    );
+    let search: Value =
+        serde_json::from_str(&std::fs::read_to_string(a.join("search.json")).unwrap()).unwrap();
+    assert_eq!(search["pushes"]["impulse"], 30.0);
+    assert_eq!(search["pushes"]["step_seconds"], 0.05);
+    // top-1.json holds its push as a scenario push, and eval --scenario replays it seed for seed.
+    let top: Value =
+        serde_json::from_str(&std::fs::read_to_string(a.join("top-1.json")).unwrap()).unwrap();
+    let held = log.iter().find(|c| c["phase"] == "held-out").unwrap();
+    let push_edits = top["edits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e.get("push").is_some())
+        .count();
+    assert_eq!(push_edits, held["schedule"].get("push").is_some() as usize);
+    let (replayed, searched) = replayed_vs_searched(&a, "top-1.json", 0);
+    assert_eq!(replayed, searched);
+    // The same rerun writes the same bytes.
+    let b = dir.path().join("b");
+    let o = gaitscope(&ARGS)
+        .args([
+            "--push-impulse",
+            "30",
+            "--threads",
+            "1",
+            "--out",
+            b.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in [
+        "candidates.jsonl",
+        "summary.md",
+        "top-1.json",
+        "minimal.json",
+    ] {
+        assert_eq!(
+            std::fs::read_to_string(a.join(f)).unwrap(),
+            std::fs::read_to_string(b.join(f)).unwrap(),
+            "{f}"
+        );
+    }
 }

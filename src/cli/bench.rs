@@ -172,6 +172,7 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
                 reference: false,
                 severity_budget: 1.0,
                 latest_onset: 100,
+                pushes: None,
                 evaluations,
                 episodes,
                 held_out_episodes: episodes,

@@ -45,7 +45,12 @@ pub(crate) struct SearchArgs {
     /// Evaluations the shrinker may spend reducing the best schedule.
     #[arg(long, default_value_t = 100)]
     shrink_evaluations: usize,
-    /// The latest step a joint's damage may start at.
+    /// Search one push per schedule as well — a horizontal force on the torso or a leg, up to
+    /// 1,000 N for up to 10 env steps — with at most this impulse (newton-seconds; the Ant
+    /// weighs about 9 N). Off unless given.
+    #[arg(long, value_name = "N·S")]
+    push_impulse: Option<f64>,
+    /// The latest step a joint's damage (or the push) may start at.
     #[arg(long, default_value_t = 100)]
     latest_onset: usize,
     #[arg(long, default_value_t = 500)]
@@ -105,6 +110,10 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
         reference: !args.no_reference,
         severity_budget: args.budget,
         latest_onset: args.latest_onset,
+        pushes: args.push_impulse.map(|impulse| search::space::PushSpace {
+            impulse,
+            step_seconds: evaluator.step_seconds(),
+        }),
         evaluations: args.evaluations,
         episodes: args.episodes,
         held_out_episodes: args.held_out,
@@ -125,8 +134,12 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
             .get(1)
             .map(|m| format!("-vs-{}", m.label))
             .unwrap_or_default();
+        let push = opts
+            .pushes
+            .map(|p| format!("-push{}", p.impulse))
+            .unwrap_or_default();
         PathBuf::from("search").join(format!(
-            "{}{vs}-k{}-{}-s{}",
+            "{}{vs}-k{}{push}-{}-s{}",
             opts.models[0].label,
             opts.severity_budget,
             method.name(),

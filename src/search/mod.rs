@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 
 use crate::damage::N_ACTUATORS;
 use crate::eval::stats::Rate;
-use space::{GENES, Schedule, Space};
+use space::{PushSpace, Schedule, Space};
 
 /// Evaluations per search, at most.
 pub const MAX_EVALUATIONS: usize = 100_000;
@@ -150,6 +150,10 @@ pub struct SearchOptions {
     pub reference: bool,
     pub severity_budget: f64,
     pub latest_onset: usize,
+    /// One push per schedule as well, under this impulse budget (`--push-impulse`); absent
+    /// from a search without pushes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pushes: Option<PushSpace>,
     pub evaluations: usize,
     pub episodes: usize,
     pub held_out_episodes: usize,
@@ -176,6 +180,21 @@ impl SearchOptions {
                 space::MAX_SEVERITY,
                 self.severity_budget
             ));
+        }
+        if let Some(p) = &self.pushes {
+            if !(p.step_seconds.is_finite() && p.step_seconds > 0.0) {
+                return bad(format!("an env step of {} s", p.step_seconds));
+            }
+            let most = PushSpace::max_impulse(p.step_seconds);
+            if !(p.impulse.is_finite() && p.impulse > 0.0 && p.impulse <= most) {
+                return bad(format!(
+                    "--push-impulse must lie in (0, {most}] N·s (a push of at most {} N for at                      most {} steps of {} s), got {}",
+                    crate::damage::MAX_PUSH_NEWTONS,
+                    space::MAX_SEARCH_PUSH_STEPS,
+                    p.step_seconds,
+                    p.impulse
+                ));
+            }
         }
         if !(1..=MAX_EVALUATIONS).contains(&self.evaluations) {
             return bad(format!(
@@ -224,6 +243,7 @@ impl SearchOptions {
         Space {
             severity_budget: self.severity_budget,
             latest_onset: self.latest_onset,
+            pushes: self.pushes,
         }
     }
 
@@ -454,16 +474,18 @@ impl Run<'_> {
                 use rand::{Rng, SeedableRng};
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.opts.seed);
                 for _ in 0..budget {
-                    let genome: Vec<f64> = (0..GENES).map(|_| rng.random::<f64>()).collect();
+                    let genome: Vec<f64> =
+                        (0..space.genes()).map(|_| rng.random::<f64>()).collect();
                     found.push(self.evaluate(phase, method, &space.decode(&genome), &seeds)?);
                 }
             }
             Method::Cma => {
                 // CMA-ES from the budget spread evenly over the joints (the largest damage
-                // that needs no scaling down) and onsets mid-range; a run that converges (or
-                // stalls on a flat stretch) before the budget restarts there with the next seed.
+                // that needs no scaling down), onsets mid-range and a push (if any) in the
+                // middle of its ranges; a run that converges (or stalls on a flat stretch)
+                // before the budget restarts there with the next seed.
                 let even = (self.opts.severity_budget / N_ACTUATORS as f64).min(0.5);
-                let start: Vec<f64> = (0..GENES)
+                let start: Vec<f64> = (0..space.genes())
                     .map(|g| if g < N_ACTUATORS { even } else { 0.5 })
                     .collect();
                 let mut restart = 0u64;
@@ -943,7 +965,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
     md.push_str(&format!("# gaitscope search: {what}\n\n"));
     md.push_str(&format!(
         "Models: {}. World `{}`. Damage: per joint a scale in [0, 1] from an onset step ≤ {}, \
-         Σ(1 − scale) ≤ {} (fatigue off). {} evaluations of {} by {}{}, each on the same {} \
+         Σ(1 − scale) ≤ {} (fatigue off){}. {} evaluations of {} by {}{}, each on the same {} \
          search seeds (from {}), step limit {}. Score: {}. The top {} re-run on {} held-out seeds \
          (from {}: `gaitscope eval --scenario FILE --episodes {} --seed {} --max-steps {}` gives \
          the same episodes).\n\n",
@@ -955,6 +977,17 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         o.world,
         o.latest_onset,
         o.severity_budget,
+        match &o.pushes {
+            Some(p) => format!(
+                "; and one horizontal push on the torso or a leg, at most {} N for at most {} \
+                 steps, with an impulse of at most {} N·s, from an onset step ≤ {}",
+                crate::damage::MAX_PUSH_NEWTONS,
+                space::MAX_SEARCH_PUSH_STEPS,
+                p.impulse,
+                o.latest_onset
+            ),
+            None => String::new(),
+        },
         o.evaluations,
         report.searched.len(),
         o.method.name(),
@@ -979,7 +1012,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         o.held_out_seed_base,
         o.max_steps,
     ));
-    md.push_str("| file | method | damage (joint scale @ onset) | severity | score | search success | held-out success |\n|---|---|---|---:|---:|---|---|\n");
+    md.push_str("| file | method | damage (joint scale @ onset; push) | severity | score | search success | held-out success |\n|---|---|---|---:|---:|---|---|\n");
     for c in &confirmed {
         md.push_str(&format!(
             "| `{}.json` | {} | {} | {:.3} | {:.3} | {} | {} |\n",
@@ -1033,7 +1066,8 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         report.shrunk.candidate.schedule.describe(&report.joints),
         report.shrunk.evaluations,
         if report.shrunk.minimal {
-            ": no single further reduction (drop a joint, raise a scale by 0.1, a later onset) keeps the failure"
+            ": no single further reduction (drop a joint or the push, raise a scale by 0.1, halve \
+             the push, a later onset) keeps the failure"
         } else {
             " (the shrink budget ran out: it may shrink further)"
         },
@@ -1058,6 +1092,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
 pub struct PolicyEvaluator {
     actors: Vec<(String, crate::lane::Actor)>,
     joints: [String; N_ACTUATORS],
+    step_seconds: f64,
     max_steps: usize,
     pool: rayon::ThreadPool,
 }
@@ -1076,6 +1111,7 @@ impl PolicyEvaluator {
         let world = actors[0].1.world(&crate::config::GaitConfig::default());
         let env = crate::env::AntEnv::new(world, 0).map_err(crate::eval::EvalError::Env)?;
         let joints = env.damage().joint_names().clone();
+        let step_seconds = env.dt();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads.max(1))
             .build()
@@ -1083,6 +1119,7 @@ impl PolicyEvaluator {
         Ok(PolicyEvaluator {
             actors,
             joints,
+            step_seconds,
             max_steps,
             pool,
         })
@@ -1103,6 +1140,12 @@ impl PolicyEvaluator {
         requested.damage.scenario = Some(scenario);
         requested.env.max_episode_steps = self.max_steps;
         Ok(requested)
+    }
+
+    /// Seconds per env step in the first model's world (a push's impulse is newtons × this ×
+    /// steps).
+    pub fn step_seconds(&self) -> f64 {
+        self.step_seconds
     }
 
     /// The first model's world: its goal distance and name.
@@ -1244,6 +1287,7 @@ mod tests {
             reference: false,
             severity_budget: 1.0,
             latest_onset: 100,
+            pushes: None,
             evaluations,
             episodes: 2,
             held_out_episodes: 4,
@@ -1302,6 +1346,91 @@ mod tests {
         );
         let cma = hits[0].expect("CMA-ES found the planted failure");
         assert!(hits[1].is_none_or(|r| r > cma), "{hits:?}");
+    }
+
+    /// A planted push failure: every episode fails exactly when the torso is pushed with at
+    /// least 15 N·s before step 50, whatever the joints; nearer the goal the weaker the push.
+    struct PlantedPush(Planted);
+
+    impl PlantedPush {
+        fn fails(s: &Schedule) -> bool {
+            s.push
+                .as_ref()
+                .is_some_and(|p| p.body == "torso" && p.impulse(0.05) >= 15.0 && p.onset < 50)
+        }
+    }
+
+    impl Evaluate for PlantedPush {
+        fn joints(&self) -> &[String; N_ACTUATORS] {
+            &self.0.joints
+        }
+        fn evaluate(
+            &self,
+            s: &Schedule,
+            seeds: &[u64],
+        ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
+            self.0.calls.fetch_add(1, Ordering::SeqCst);
+            let fail = Self::fails(s);
+            let d = s.push.as_ref().map_or(0.0, |p| {
+                let torso = if p.body == "torso" { 1.0 } else { 0.3 };
+                torso * (p.impulse(0.05) / 40.0).min(1.0) * (1.0 - p.onset as f64 / 101.0)
+            });
+            Ok(vec![
+                seeds
+                    .iter()
+                    .map(|&seed| EpisodeOutcome {
+                        seed,
+                        success: !fail,
+                        steps: 100,
+                        final_distance: round9(3.0 * d),
+                    })
+                    .collect(),
+            ])
+        }
+    }
+
+    #[test]
+    fn a_planted_push_is_found_within_its_impulse_budget_and_shrunk_to_itself() {
+        let dir = tempfile::tempdir().unwrap();
+        let opts = SearchOptions {
+            pushes: Some(PushSpace {
+                impulse: 40.0,
+                step_seconds: 0.05,
+            }),
+            ..options(Method::Cma, 200)
+        };
+        let planted = PlantedPush(Planted::new());
+        let report = run(&opts, &planted, dir.path()).unwrap();
+        assert_eq!(report.searched.len(), 200);
+        for c in &report.searched {
+            assert!(c.severity <= 1.0 + 1e-9);
+            if let Some(p) = &c.schedule.push {
+                assert!(p.impulse(0.05) <= 40.0 + 1e-9, "{p:?}");
+            }
+        }
+        let best = &report.top[0];
+        assert!(PlantedPush::fails(&best.search.schedule), "{best:?}");
+        // Shrunk to the push alone, which still fails, and no single reduction of it does.
+        let s = &report.shrunk.candidate.schedule;
+        assert!(report.shrunk.minimal);
+        assert!(PlantedPush::fails(s), "{s:?}");
+        assert_eq!(s.damaged().count(), 0, "{s:?}");
+        for r in opts.space().reductions(s) {
+            assert!(!PlantedPush::fails(&r), "{r:?} still fails");
+        }
+        // The written scenario carries the push; the summary says pushes were searched.
+        let top = std::fs::read_to_string(dir.path().join("minimal.json")).unwrap();
+        let read = crate::damage::scenario::Scenario::from_json(&top, "minimal").unwrap();
+        assert_eq!(read.pushes.len(), 1);
+        let summary = std::fs::read_to_string(dir.path().join("summary.md")).unwrap();
+        assert!(summary.contains("at most 40 N·s"), "{summary}");
+        // A search without pushes writes no push key (its files read as before).
+        let plain = tempfile::tempdir().unwrap();
+        run(&options(Method::Random, 5), &Planted::new(), plain.path()).unwrap();
+        for f in ["search.json", "candidates.jsonl"] {
+            let text = std::fs::read_to_string(plain.path().join(f)).unwrap();
+            assert!(!text.contains("push"), "{f}: {text}");
+        }
     }
 
     #[test]
@@ -1373,6 +1502,26 @@ mod tests {
                 "--budget",
             ),
             (options(Method::Cma, 0), "--evaluations must lie in 1..="),
+            (
+                SearchOptions {
+                    pushes: Some(PushSpace {
+                        impulse: 501.0,
+                        step_seconds: 0.05,
+                    }),
+                    ..options(Method::Cma, 5)
+                },
+                "--push-impulse must lie in (0, 500] N·s",
+            ),
+            (
+                SearchOptions {
+                    pushes: Some(PushSpace {
+                        impulse: f64::INFINITY,
+                        step_seconds: 0.05,
+                    }),
+                    ..options(Method::Cma, 5)
+                },
+                "--push-impulse",
+            ),
             (
                 SearchOptions {
                     latest_onset: 500,

@@ -1,23 +1,73 @@
 //! The damage schedules `gaitscope search` looks through: per joint a torque scale in [0, 1]
-//! from an onset step on, under a severity budget Σ(1 − scale) ≤ K, written as scenario files
-//! (docs/scenarios.md) so every command replays them unchanged.
+//! from an onset step on, under a severity budget Σ(1 − scale) ≤ K, and optionally one push
+//! (a body, a horizontal force, how long, when) under an impulse budget; written as scenario
+//! files (docs/scenarios.md) so every command replays them unchanged.
 
 use serde::{Deserialize, Serialize};
 
+use crate::damage::MAX_PUSH_NEWTONS;
 use crate::damage::N_ACTUATORS;
 
-/// Genes per schedule: a damage and an onset per joint.
+/// Genes per schedule without a push: a damage and an onset per joint.
 pub const GENES: usize = 2 * N_ACTUATORS;
+/// Genes of the searched push, after the joints': body, heading, impulse, length, onset.
+pub const PUSH_GENES: usize = 5;
 /// Scales are searched in steps of this (so a written scenario is exactly what ran).
 pub const SCALE_STEP: f64 = 1e-3;
 /// Severity budget, at most: every joint dead.
 pub const MAX_SEVERITY: f64 = N_ACTUATORS as f64;
+/// The bodies a searched push acts on: the torso and each leg's upper part (the bodies a
+/// person drags in the panel).
+pub const PUSH_BODIES: [&str; 5] = [
+    "torso",
+    "front_left_leg",
+    "front_right_leg",
+    "back_leg",
+    "right_back_leg",
+];
+/// The longest searched push, in env steps (half a second in Ant-v4): a shove, not a wind.
+pub const MAX_SEARCH_PUSH_STEPS: usize = 10;
 
-/// One damage schedule: joint i runs at `scales[i]` from step `onsets[i]` on (scale 1: untouched).
+/// One push of a schedule: a horizontal force on a body, from `onset` for `steps` env steps.
+/// Whole newtons and whole degrees, so a written scenario is exactly what ran.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SearchPush {
+    /// One of [`PUSH_BODIES`].
+    pub body: String,
+    /// Direction in the floor's plane, degrees from +x towards +y, in [0, 360).
+    pub heading_deg: u32,
+    /// The force's size, 1 to [`MAX_PUSH_NEWTONS`].
+    pub newtons: u32,
+    pub steps: usize,
+    pub onset: usize,
+}
+
+impl SearchPush {
+    /// The force in newtons, world frame; each component rounded toward zero to 1 mN, so its
+    /// size never exceeds `newtons` (nor the push cap).
+    pub fn force(&self) -> [f64; 3] {
+        let r = f64::from(self.heading_deg).to_radians();
+        let f = f64::from(self.newtons);
+        let mn = |x: f64| (x * 1e3).trunc() / 1e3;
+        [mn(f * r.cos()), mn(f * r.sin()), 0.0]
+    }
+
+    /// Newton-seconds: force × duration.
+    pub fn impulse(&self, step_seconds: f64) -> f64 {
+        f64::from(self.newtons) * self.steps as f64 * step_seconds
+    }
+}
+
+/// One damage schedule: joint i runs at `scales[i]` from step `onsets[i]` on (scale 1: untouched),
+/// and at most one push.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Schedule {
     pub scales: [f64; N_ACTUATORS],
     pub onsets: [usize; N_ACTUATORS],
+    /// Absent from a search without pushes (its lines read as before pushes were searched).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub push: Option<SearchPush>,
 }
 
 impl Schedule {
@@ -25,10 +75,12 @@ impl Schedule {
         Schedule {
             scales: [1.0; N_ACTUATORS],
             onsets: [0; N_ACTUATORS],
+            push: None,
         }
     }
 
-    /// Σ(1 − scale): 0 healthy, 1 one joint dead (or two at 0.5), 8 everything dead.
+    /// Σ(1 − scale): 0 healthy, 1 one joint dead (or two at 0.5), 8 everything dead. A push
+    /// has its own budget (its impulse), so it does not count here.
     pub fn severity(&self) -> f64 {
         self.scales.iter().map(|s| 1.0 - s).sum()
     }
@@ -38,12 +90,24 @@ impl Schedule {
         (0..N_ACTUATORS).filter(|&i| self.scales[i] < 1.0)
     }
 
-    /// `hip_2 0.12 @ 31, ankle_4 0.5 @ 0`, or `healthy`.
+    /// `hip_2 0.12 @ 31, ankle_4 0.5 @ 0, push torso 420 N toward 135° for 3 steps @ 60`, or
+    /// `healthy`.
     pub fn describe(&self, joints: &[String; N_ACTUATORS]) -> String {
-        let parts: Vec<String> = self
+        let mut parts: Vec<String> = self
             .damaged()
             .map(|i| format!("{} {} @ {}", joints[i], self.scales[i], self.onsets[i]))
             .collect();
+        if let Some(p) = &self.push {
+            parts.push(format!(
+                "push {} {} N toward {}° for {} step{} @ {}",
+                p.body,
+                p.newtons,
+                p.heading_deg,
+                p.steps,
+                if p.steps == 1 { "" } else { "s" },
+                p.onset
+            ));
+        }
         if parts.is_empty() {
             "healthy".into()
         } else {
@@ -52,19 +116,25 @@ impl Schedule {
     }
 
     /// The schedule as a scenario file: fatigue off (only the schedule damages joints), one
-    /// `scale` edit per damaged joint at its onset.
+    /// `scale` edit per damaged joint at its onset, then the push.
     pub fn scenario_json(
         &self,
         name: &str,
         description: &str,
         joints: &[String; N_ACTUATORS],
     ) -> serde_json::Value {
-        let edits: Vec<serde_json::Value> = self
+        let mut edits: Vec<serde_json::Value> = self
             .damaged()
             .map(|i| {
                 serde_json::json!({"step": self.onsets[i], "joint": joints[i], "scale": self.scales[i]})
             })
             .collect();
+        if let Some(p) = &self.push {
+            edits.push(serde_json::json!({
+                "step": p.onset,
+                "push": {"body": p.body, "force": p.force(), "steps": p.steps},
+            }));
+        }
         serde_json::json!({
             "name": name,
             "description": description,
@@ -74,11 +144,28 @@ impl Schedule {
     }
 }
 
-/// Where schedules live: the budget K and the latest onset step.
+/// Pushes in the search: the impulse one push may have, and the seconds one env step lasts
+/// (the world's, so the impulse means newton-seconds).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PushSpace {
+    pub impulse: f64,
+    pub step_seconds: f64,
+}
+
+impl PushSpace {
+    /// The largest impulse budget worth asking for: the strongest push for the longest time.
+    pub fn max_impulse(step_seconds: f64) -> f64 {
+        MAX_PUSH_NEWTONS * MAX_SEARCH_PUSH_STEPS as f64 * step_seconds
+    }
+}
+
+/// Where schedules live: the budget K, the latest onset step, and pushes if searched.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Space {
     pub severity_budget: f64,
     pub latest_onset: usize,
+    pub pushes: Option<PushSpace>,
 }
 
 /// `x` folded into [0, 1] by reflection at 0 and 1 (a box constraint CMA-ES can move across
@@ -92,9 +179,20 @@ fn reflect(x: f64) -> f64 {
 }
 
 impl Space {
-    /// A genome (any reals; [`GENES`] of them: damages, then onsets) as a schedule within the
-    /// budget: each gene folded into [0, 1]; damages scaled down together when their sum
-    /// exceeds K, then floored to [`SCALE_STEP`] (so the budget holds after rounding).
+    /// Genes per genome: the joints', then the push's where pushes are searched.
+    pub fn genes(&self) -> usize {
+        GENES + if self.pushes.is_some() { PUSH_GENES } else { 0 }
+    }
+
+    /// An onset gene (folded into [0, 1]) as a step in [0, latest onset].
+    fn onset(&self, gene: f64) -> usize {
+        ((reflect(gene) * (self.latest_onset + 1) as f64).floor() as usize).min(self.latest_onset)
+    }
+
+    /// A genome (any reals; [`Space::genes`] of them: damages, onsets, then the push's) as a
+    /// schedule within the budgets: each gene folded into [0, 1]; damages scaled down together
+    /// when their sum exceeds K, then floored to [`SCALE_STEP`] (so the budget holds after
+    /// rounding); the push's impulse a fraction of its budget, floored to whole newtons.
     pub fn decode(&self, genome: &[f64]) -> Schedule {
         let mut damage = [0.0; N_ACTUATORS];
         for (d, &g) in damage.iter_mut().zip(genome) {
@@ -111,15 +209,35 @@ impl Space {
         for (i, d) in damage.iter().enumerate() {
             let steps = (d / SCALE_STEP + 1e-9).floor();
             schedule.scales[i] = round_scale(1.0 - steps * SCALE_STEP);
-            let onset = genome.get(N_ACTUATORS + i).copied().map_or(0.0, reflect);
-            schedule.onsets[i] =
-                ((onset * (self.latest_onset + 1) as f64).floor() as usize).min(self.latest_onset);
+            schedule.onsets[i] = self.onset(genome.get(N_ACTUATORS + i).copied().unwrap_or(0.0));
+        }
+        if let Some(space) = self.pushes {
+            let gene = |k: usize| reflect(genome.get(GENES + k).copied().unwrap_or(0.0));
+            let body = ((gene(0) * PUSH_BODIES.len() as f64) as usize).min(PUSH_BODIES.len() - 1);
+            let heading_deg = ((gene(1) * 360.0) as u32).min(359);
+            let steps = 1
+                + ((gene(3) * MAX_SEARCH_PUSH_STEPS as f64) as usize)
+                    .min(MAX_SEARCH_PUSH_STEPS - 1);
+            let impulse = gene(2) * space.impulse;
+            let newtons =
+                (impulse / (steps as f64 * space.step_seconds) + 1e-9).min(MAX_PUSH_NEWTONS);
+            // Below one newton there is no push to speak of.
+            if newtons >= 1.0 {
+                schedule.push = Some(SearchPush {
+                    body: PUSH_BODIES[body].to_string(),
+                    heading_deg,
+                    newtons: newtons.floor() as u32,
+                    steps,
+                    onset: self.onset(genome.get(GENES + 4).copied().unwrap_or(0.0)),
+                });
+            }
         }
         schedule
     }
 
     /// The single reductions of a schedule a shrinker tries, least damage first: drop a joint
-    /// (scale → 1), raise its scale by 0.1, start it 10 % of the latest onset later.
+    /// (scale → 1) or the push, raise a scale by 0.1 or halve the push's force, start a joint
+    /// or the push 10 % of the latest onset later.
     pub fn reductions(&self, s: &Schedule) -> Vec<Schedule> {
         let mut out = Vec::new();
         let later = (self.latest_onset / 10).max(1);
@@ -129,6 +247,12 @@ impl Space {
             dropped.onsets[i] = 0;
             out.push(dropped);
         }
+        if s.push.is_some() {
+            out.push(Schedule {
+                push: None,
+                ..s.clone()
+            });
+        }
         for i in s.damaged() {
             if s.scales[i] < 0.9 {
                 let mut raised = s.clone();
@@ -136,12 +260,32 @@ impl Space {
                 out.push(raised);
             }
         }
+        if let Some(p) = s.push.as_ref().filter(|p| p.newtons >= 2) {
+            let mut halved = s.clone();
+            halved.push = Some(SearchPush {
+                newtons: p.newtons / 2,
+                ..p.clone()
+            });
+            out.push(halved);
+        }
         for i in s.damaged() {
             if s.onsets[i] + later <= self.latest_onset {
                 let mut delayed = s.clone();
                 delayed.onsets[i] += later;
                 out.push(delayed);
             }
+        }
+        if let Some(p) = s
+            .push
+            .as_ref()
+            .filter(|p| p.onset + later <= self.latest_onset)
+        {
+            let mut delayed = s.clone();
+            delayed.push = Some(SearchPush {
+                onset: p.onset + later,
+                ..p.clone()
+            });
+            out.push(delayed);
         }
         out
     }
@@ -168,6 +312,7 @@ mod tests {
         let space = Space {
             severity_budget: 1.5,
             latest_onset: 100,
+            pushes: None,
         };
         let mut rng = 12345u64;
         for _ in 0..2000 {
@@ -197,6 +342,7 @@ mod tests {
         let space = Space {
             severity_budget: 1.0,
             latest_onset: 99,
+            pushes: None,
         };
         // Damages 0.8 and 0.6 (1.4, reflected from 1.4) sum to 1.4 > 1: scaled by 1/1.4.
         let mut genome = vec![0.0; GENES];
@@ -232,6 +378,7 @@ mod tests {
         let space = Space {
             severity_budget: 2.0,
             latest_onset: 100,
+            pushes: None,
         };
         let mut s = Schedule::healthy();
         s.scales[0] = 0.05;
@@ -247,5 +394,126 @@ mod tests {
             );
         }
         assert_eq!(r[2].scales[0], 0.15);
+    }
+
+    fn push_space(impulse: f64) -> Space {
+        Space {
+            severity_budget: 1.0,
+            latest_onset: 99,
+            pushes: Some(PushSpace {
+                impulse,
+                step_seconds: 0.05,
+            }),
+        }
+    }
+
+    #[test]
+    fn a_push_decodes_by_hand_and_replays_as_the_same_scenario_push() {
+        let space = push_space(60.0);
+        let mut genome = vec![0.0; space.genes()];
+        // Body 0.3 · 5 → 1 (front_left_leg); heading 0.25 → 90°; impulse 0.5 · 60 = 30 N·s;
+        // length 1 + ⌊0.25 · 10⌋ = 3 steps, so 30 / (3 · 0.05) = 200 N; onset 0.5 · 100 → 50.
+        genome[GENES..].copy_from_slice(&[0.3, 0.25, 0.5, 0.25, 0.5]);
+        let s = space.decode(&genome);
+        let p = s.push.clone().expect("a push");
+        assert_eq!(
+            p,
+            SearchPush {
+                body: "front_left_leg".into(),
+                heading_deg: 90,
+                newtons: 200,
+                steps: 3,
+                onset: 50,
+            }
+        );
+        assert_eq!(p.force(), [0.0, 200.0, 0.0]);
+        assert!((p.impulse(0.05) - 30.0).abs() < 1e-9);
+        assert_eq!(s.severity(), 0.0); // a push spends its own budget, not the joints'
+        assert_eq!(
+            s.describe(&joints()),
+            "push front_left_leg 200 N toward 90° for 3 steps @ 50"
+        );
+        // The scenario file carries the same push, and the scenario reader accepts it.
+        let v = s.scenario_json("x", "y", &joints());
+        assert_eq!(
+            v["edits"],
+            serde_json::json!([{"step": 50, "push": {"body": "front_left_leg", "force": [0.0, 200.0, 0.0], "steps": 3}}])
+        );
+        let read = crate::damage::scenario::Scenario::from_json(&v.to_string(), "x").unwrap();
+        assert_eq!(read.pushes.len(), 1);
+        assert_eq!(
+            read.pushes[0].step,
+            crate::damage::scenario::StepSpec::At(50)
+        );
+        assert_eq!(read.pushes[0].push.force, [0.0, 200.0, 0.0]);
+        assert_eq!(read.pushes[0].push.steps, 3);
+        // One step at the whole budget would be 1,200 N: held to the push cap, 1,000 N.
+        genome[GENES + 2] = 1.0;
+        genome[GENES + 3] = 0.0;
+        let p = space.decode(&genome).push.unwrap();
+        assert_eq!((p.newtons, p.steps), (1000, 1));
+        // No impulse, no push; a search without pushes reads no push genes.
+        genome[GENES + 2] = 0.0;
+        assert_eq!(space.decode(&genome).push, None);
+        let plain = Space {
+            pushes: None,
+            ..space
+        };
+        assert_eq!(plain.genes(), GENES);
+        assert_eq!(plain.decode(&[0.5; GENES + PUSH_GENES]).push, None);
+    }
+
+    #[test]
+    fn decoded_pushes_keep_their_budget_and_the_cap() {
+        for impulse in [0.5, 7.0, 60.0, PushSpace::max_impulse(0.05)] {
+            let space = push_space(impulse);
+            let mut rng = 99u64;
+            let mut pushes = 0;
+            for _ in 0..2000 {
+                let genome: Vec<f64> = (0..space.genes())
+                    .map(|_| {
+                        rng = rng
+                            .wrapping_mul(6364136223846793005)
+                            .wrapping_add(1442695040888963407);
+                        ((rng >> 11) as f64 / (1u64 << 53) as f64) * 6.0 - 3.0
+                    })
+                    .collect();
+                let Some(p) = space.decode(&genome).push else {
+                    continue;
+                };
+                pushes += 1;
+                assert!(p.impulse(0.05) <= impulse + 1e-9, "{p:?} over {impulse}");
+                assert!((1..=1000).contains(&p.newtons), "{p:?}");
+                let f = p.force();
+                assert!(f[0].hypot(f[1]) <= f64::from(p.newtons), "{p:?}");
+                assert!((1..=MAX_SEARCH_PUSH_STEPS).contains(&p.steps));
+                assert!(p.heading_deg < 360 && p.onset <= 99);
+                assert!(PUSH_BODIES.contains(&p.body.as_str()));
+                crate::damage::Push::new(&p.body, f, p.steps).unwrap();
+            }
+            assert!(pushes > 100, "{impulse}: only {pushes} pushes of 2000");
+        }
+    }
+
+    #[test]
+    fn a_push_is_dropped_halved_and_delayed_by_the_shrinker() {
+        let space = push_space(60.0);
+        let mut s = Schedule::healthy();
+        s.scales[1] = 0.5;
+        s.push = Some(SearchPush {
+            body: "torso".into(),
+            heading_deg: 10,
+            newtons: 301,
+            steps: 2,
+            onset: 20,
+        });
+        let r = space.reductions(&s);
+        // Drop joint 1, drop the push, raise joint 1, halve the push, delay joint 1, delay it.
+        assert_eq!(r.len(), 6);
+        assert_eq!(r[1].push, None);
+        assert_eq!(r[1].scales[1], 0.5);
+        assert_eq!(r[3].push.as_ref().unwrap().newtons, 150);
+        assert_eq!(r[5].push.as_ref().unwrap().onset, 29);
+        assert_eq!(r[5].scales, s.scales);
     }
 }
