@@ -434,6 +434,19 @@ fn live_and_view_explain_what_is_missing() {
     let rrd = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("recordings/baseline-severe.rrd");
     let out = gaitscope_display(&["view", rrd.to_str().unwrap()], None);
     assert!(stderr(&out).contains("no display"), "{}", stderr(&out));
+    assert!(!stderr(&out).contains("not whole"), "{}", stderr(&out));
+    // A recording cut short (or with a damaged byte) still opens, but says so first.
+    let bytes = std::fs::read(&rrd).unwrap();
+    let cut = dir.path().join("cut.rrd");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let out = gaitscope_display(&["view", cut.to_str().unwrap()], None);
+    let e = stderr(&out);
+    assert!(
+        e.contains("cut.rrd is not whole: it breaks off after")
+            && e.contains("bytes into the next")
+            && e.contains("no display"),
+        "{e}"
+    );
 }
 
 /// The paths a newcomer passes where a checkpoint folder belongs get told what they are.

@@ -130,6 +130,14 @@ pub(crate) fn view_command(args: ViewArgs) -> Result<()> {
     use gaitscope::app::viewer;
     // The file first: a wrong path is the likelier mistake, and needs no display to report.
     viewer::check_recording(&args.file)?;
+    // Read through once: a file cut short (a killed writer, a full disk) or damaged still opens,
+    // but the viewer would show the part before without a word.
+    if let Err(reason) = gaitscope::telemetry::read_back(&args.file) {
+        eprintln!(
+            "warning: {} is not whole: {reason}; the viewer shows what comes before",
+            args.file.display()
+        );
+    }
     viewer::require_display("gaitscope view")?;
     let path = viewer::find_viewer(args.viewer.as_deref())?;
     viewer::view_recording(&path, &args.file)?;

@@ -46,7 +46,7 @@ mod record;
 mod session;
 pub use blueprint::*;
 pub use logger::*;
-pub use record::{PartialFile, RecordOptions, RecordSummary, model_roots, record};
+pub use record::{PartialFile, RecordOptions, RecordSummary, model_roots, read_back, record};
 pub use session::{
     Actor, FORK_ROOT, HISTORY_CAP, LOG_CAP, Lane, LaneEnding, LaneSnapshot, LaneSpec, LogEntry,
     RecordError, RewindError, Session, side_by_side_offset,

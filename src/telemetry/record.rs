@@ -34,6 +34,35 @@ pub struct RecordSummary {
     pub storage: Option<rerun::sink::MemorySinkStorage>,
 }
 
+/// Reads a recording file through with Rerun's own decoder (message by message, so memory
+/// stays bounded however large the file): the number of whole messages, or where and how it
+/// breaks off — a message cut off by the file's end (a full disk, a killed writer) or one the
+/// decoder refuses (damaged bytes).
+pub fn read_back(path: &std::path::Path) -> Result<usize, String> {
+    let file = crate::files::open_regular(path).map_err(|e| format!("reading it back: {e}"))?;
+    let len = file
+        .metadata()
+        .map_err(|e| format!("reading it back: {e}"))?
+        .len();
+    let mut messages = 0;
+    // The decoder ends quietly at a message cut off by the end of the file; what it did not
+    // consume is that cut-off message.
+    let mut decoded = re_log_encoding::DecoderApp::decode_lazy(std::io::BufReader::new(file));
+    for message in &mut decoded {
+        let _whole =
+            message.map_err(|e| format!("it breaks off after {messages} whole messages ({e})"))?;
+        messages += 1;
+    }
+    let read = decoded.num_bytes_processed();
+    if read < len {
+        return Err(format!(
+            "it breaks off after {messages} whole messages, {} bytes into the next",
+            len - read
+        ));
+    }
+    Ok(messages)
+}
+
 /// The longest a recording's final flush to its file may take.
 pub(super) const FILE_FLUSH_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
 
@@ -72,41 +101,15 @@ impl PartialFile {
     /// message complete, none cut off by a failed write. For a session whose stream did not
     /// flush, where a full disk and a closed viewer look alike. The file stays where it is.
     pub fn check_whole(&self) -> Result<usize, RecordError> {
-        let incomplete = |reason: String| RecordError::Incomplete {
+        read_back(&self.partial).map_err(|reason| RecordError::Incomplete {
             path: self.path.clone(),
             reason: format!(
-                "{reason}; what was written stays at {}",
+                "{reason} (is the disk full, or the file larger than the system allows?); what \
+                 was written stays at {}",
                 self.partial.display()
             )
             .into(),
-        };
-        let file = crate::files::open_regular(&self.partial)
-            .map_err(|e| incomplete(format!("reading it back: {e}")))?;
-        let len = file
-            .metadata()
-            .map_err(|e| incomplete(format!("reading it back: {e}")))?
-            .len();
-        let mut messages = 0;
-        // The decoder ends quietly at a message cut off by the end of the file; what it did not
-        // consume is that cut-off message.
-        let mut decoded = re_log_encoding::DecoderApp::decode_lazy(std::io::BufReader::new(file));
-        for message in &mut decoded {
-            let _whole = message.map_err(|e| {
-                incomplete(format!(
-                    "it breaks off after {messages} whole messages ({e})"
-                ))
-            })?;
-            messages += 1;
-        }
-        let read = decoded.num_bytes_processed();
-        if read < len {
-            return Err(incomplete(format!(
-                "it breaks off after {messages} whole messages, {} bytes into the next (is the \
-                 disk full, or the file larger than the system allows?)",
-                len - read
-            )));
-        }
-        Ok(messages)
+        })
     }
 
     /// Removes the incomplete file; the error says why it is incomplete.
