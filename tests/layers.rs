@@ -7,7 +7,9 @@ use std::path::Path;
 
 /// Top-level modules, lowest layer first; a module may name only modules of lower layers.
 const LAYERS: &[&[&str]] = &[
-    &["damage", "files", "plots", "progress"],
+    // Bounded, regular-file-only reading and writing, under everything that reads a file.
+    &["files"],
+    &["damage", "plots", "progress"],
     &["config", "palette"],
     &["env"],
     &["window"],
