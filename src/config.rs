@@ -16,6 +16,11 @@ pub const MAX_EPISODE_STEPS: usize = 1_000_000;
 pub const MAX_CONTEXT_LEN: usize = 1_024;
 /// Goal coordinates, at most this far from the origin on each axis (m).
 pub const MAX_GOAL_M: f64 = 1_000.0;
+/// Reset noise, at most (Ant-v4: 0.1): a uniform draw over ±1e308 has no width a float can hold.
+pub const MAX_RESET_NOISE: f64 = 1.0;
+/// Reward weights and bonuses, at most this large: rewards stay far inside what the replay
+/// buffer's f32 holds.
+pub const MAX_REWARD_TERM: f64 = 1e6;
 
 /// The paper's world: Ant-v4, a goal 7.1 m away, fatigue under three conditions.
 pub const PAPER_WORLD: &str = "paper";
@@ -232,10 +237,29 @@ impl GaitConfig {
                 e.goal
             ));
         }
-        if e.reset_noise_scale < 0.0 {
+        if !(0.0..=MAX_RESET_NOISE).contains(&e.reset_noise_scale) {
             return invalid(format!(
-                "env.reset_noise_scale must be ≥ 0, got {}",
+                "env.reset_noise_scale must lie in [0, {MAX_RESET_NOISE}], got {}",
                 e.reset_noise_scale
+            ));
+        }
+        for (name, value) in [
+            ("env.ctrl_cost_weight", e.ctrl_cost_weight),
+            ("env.healthy_reward", e.healthy_reward),
+            ("env.native_reward_weight", e.native_reward_weight),
+            ("env.progress_weight", e.progress_weight),
+            ("env.success_bonus", e.success_bonus),
+        ] {
+            if value.abs() > MAX_REWARD_TERM {
+                return invalid(format!(
+                    "{name} must lie within ±{MAX_REWARD_TERM}, got {value}"
+                ));
+            }
+        }
+        if e.healthy_z_range.iter().any(|z| z.abs() > MAX_GOAL_M) {
+            return invalid(format!(
+                "env.healthy_z_range {:?} must lie within ±{MAX_GOAL_M} m",
+                e.healthy_z_range
             ));
         }
         if e.healthy_z_range[0] > e.healthy_z_range[1] {
@@ -244,15 +268,21 @@ impl GaitConfig {
                 e.healthy_z_range
             ));
         }
-        if e.success_radius <= 0.0 {
+        if !(e.success_radius > 0.0 && e.success_radius <= MAX_GOAL_M) {
             return invalid(format!(
-                "env.success_radius must be > 0, got {}",
+                "env.success_radius must lie in (0, {MAX_GOAL_M}] m, got {}",
                 e.success_radius
             ));
         }
-        if d.alpha < 0.0 || d.beta < 0.0 || d.threshold <= 0.0 {
+        // Fatigue grows by alpha·|a| + beta·‖force‖ a step: past 1e6 it triggers at once anyway.
+        if !((0.0..=1e6).contains(&d.alpha)
+            && (0.0..=1e6).contains(&d.beta)
+            && d.threshold > 0.0
+            && d.threshold <= 1e12)
+        {
             return invalid(format!(
-                "damage.alpha and damage.beta must be ≥ 0 and damage.threshold > 0 (got {}, {}, {})",
+                "damage.alpha and damage.beta must lie in [0, 1e6] and damage.threshold in (0, 1e12] \
+                 (got {}, {}, {})",
                 d.alpha, d.beta, d.threshold
             ));
         }
@@ -289,9 +319,28 @@ mod tests {
     #[test]
     fn numbers_past_their_ranges_are_refused_with_the_range() {
         type Edit = fn(&mut super::GaitConfig);
-        let cases: [(&str, Edit); 4] = [
+        let cases: [(&str, Edit); 10] = [
             ("env.frame_skip must lie in 1..=1000", |c| {
                 c.env.frame_skip = 100_000_000
+            }),
+            // A uniform draw over ±1e308 panicked inside rand (a --config or resumed run).
+            ("env.reset_noise_scale must lie in [0, 1]", |c| {
+                c.env.reset_noise_scale = 1e308
+            }),
+            ("env.success_bonus must lie within ±1000000", |c| {
+                c.env.success_bonus = 1e308
+            }),
+            ("env.healthy_reward must lie within", |c| {
+                c.env.healthy_reward = -2e6
+            }),
+            ("env.success_radius must lie in (0, 1000] m", |c| {
+                c.env.success_radius = f64::MAX
+            }),
+            ("damage.alpha and damage.beta must lie in [0, 1e6]", |c| {
+                c.damage.beta = 1e308
+            }),
+            ("env.healthy_z_range", |c| {
+                c.env.healthy_z_range = [0.2, 1e300]
             }),
             ("context.len must lie in 1..=1024", |c| {
                 c.context.len = 100_000_000

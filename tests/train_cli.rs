@@ -483,3 +483,71 @@ fn aux_flags_are_checked() {
     }
     assert!(!Path::new("/tmp/never-written").exists());
 }
+
+/// A run folder's numbers are checked on resume as a fresh run's are: a hand-edited
+/// checkpoint.json with a discount of −1 or a reset noise of 1e308 (which panicked inside the
+/// random-number library) is refused with the range, and the folder is left as it was.
+#[test]
+fn a_hand_edited_config_out_of_range_is_refused_on_resume() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("run");
+    let d = dir.to_str().unwrap();
+    let out = gaitscope(
+        &[
+            &[
+                "train",
+                "--encoder",
+                "none",
+                "--steps",
+                "200",
+                "--quiet",
+                "--out",
+                d,
+            ][..],
+            &SMALL,
+        ]
+        .concat(),
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let meta_path = dir.join("checkpoint.json");
+    let good = std::fs::read(&meta_path).unwrap();
+    type Edit = fn(&mut Value);
+    let cases: [(Edit, &str); 5] = [
+        (
+            |m| m["sac"]["gamma"] = (-1.0).into(),
+            "SAC gamma must lie in [0, 1), got -1",
+        ),
+        (
+            |m| m["sac"]["tau"] = 0.0.into(),
+            "SAC tau must lie in (0, 1]",
+        ),
+        (
+            |m| m["sac"]["learning_rate"] = 5.0.into(),
+            "SAC learning rate must lie in (0, 1]",
+        ),
+        (
+            |m| m["sac"]["initial_alpha"] = 1e308.into(),
+            "SAC initial alpha must lie in (0, 1e6]",
+        ),
+        (
+            |m| m["env"]["env"]["reset_noise_scale"] = 1e308.into(),
+            "env.reset_noise_scale must lie in [0, 1]",
+        ),
+    ];
+    for (edit, says) in cases {
+        let mut meta: Value = serde_json::from_slice(&good).unwrap();
+        edit(&mut meta);
+        let text = serde_json::to_vec_pretty(&meta).unwrap();
+        std::fs::write(&meta_path, &text).unwrap();
+        let out = gaitscope(&["train", "--resume", d, "--steps", "300", "--quiet"]);
+        let e = stderr(&out);
+        assert!(!out.status.success() && e.contains(says), "{says}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+        assert_eq!(
+            std::fs::read(&meta_path).unwrap(),
+            text,
+            "{says}: the file changed"
+        );
+        assert_eq!(steps_done(&dir), 200);
+    }
+}

@@ -617,6 +617,37 @@ fn validate_options(opts: &TrainOptions) -> Result<(), TrainError> {
     if sac.batch_size > 65_536 {
         return bad(format!("batch size {} is above 65536", sac.batch_size));
     }
+    // The numbers SAC's updates multiply by: a discount outside [0, 1) or a rate past 1 is
+    // a run that diverges, not a choice (a hand-edited checkpoint.json resumed with gamma −1).
+    let ranges = [
+        ("gamma", sac.gamma, 0.0, 1.0, "[0, 1)"),
+        ("tau", sac.tau, f64::MIN_POSITIVE, 1.0, "(0, 1]"),
+        (
+            "learning rate",
+            sac.learning_rate,
+            f64::MIN_POSITIVE,
+            1.0,
+            "(0, 1]",
+        ),
+        (
+            "initial alpha",
+            sac.initial_alpha,
+            f64::MIN_POSITIVE,
+            1e6,
+            "(0, 1e6]",
+        ),
+    ];
+    for (name, value, low, high, says) in ranges {
+        let inside = value >= low && value <= high && !(name == "gamma" && value == 1.0);
+        if !inside {
+            return bad(format!("SAC {name} must lie in {says}, got {value}"));
+        }
+    }
+    if let Some(t) = sac.target_entropy
+        && !(t.is_finite() && t.abs() <= 1e6)
+    {
+        return bad(format!("SAC target entropy must lie within ±1e6, got {t}"));
+    }
     let net = &opts.net;
     if net.privileged != Privileged::None {
         net.check_inputs().map_err(TrainError::Options)?;
