@@ -401,14 +401,16 @@ fn read_head(
         }
         let h2_so_far =
             buf.len() < H2_PREFACE.len() && H2_PREFACE.starts_with(buf) && !buf.is_empty();
-        if !h2_so_far && let Some(end) = header_end(buf) {
-            return Head::Whole(end);
-        }
-        if buf.len() > limits.max_header_bytes {
+        // A head that arrived whole in one read is measured too, not only one still coming.
+        let whole = header_end(buf).filter(|_| !h2_so_far);
+        if buf.len().min(whole.unwrap_or(usize::MAX)) > limits.max_header_bytes {
             return Head::Refuse(
                 "431 Request Header Fields Too Large",
                 "request header too large",
             );
+        }
+        if let Some(end) = whole {
+            return Head::Whole(end);
         }
         let wait = match deadline {
             Some(d) => match d.checked_duration_since(Instant::now()) {
@@ -767,6 +769,21 @@ mod tests {
         s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
         let _ = s.read_to_string(&mut out);
         assert!(out.starts_with("HTTP/1.1 431"), "{out}");
+        // A whole head just over the bound, in one write (the red team's 17,408 bytes passed:
+        // only a head still arriving was measured).
+        let mut whole = b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Long: ".to_vec();
+        whole.extend(std::iter::repeat_n(b'a', 17_408));
+        whole.extend(b"\r\n\r\n");
+        let over = get(addr, &whole);
+        assert!(over.starts_with("HTTP/1.1 431"), "{over}");
+        // Exactly at the bound passes.
+        let mut at = b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Long: ".to_vec();
+        let room = limits().max_header_bytes - at.len() - 4;
+        at.extend(std::iter::repeat_n(b'a', room));
+        at.extend(b"\r\n\r\n");
+        assert_eq!(at.len(), limits().max_header_bytes);
+        let ok = get(addr, &at);
+        assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
         // Slow headers fill the cap; a newcomer evicts the oldest of them (still sending its
         // head) instead of being refused; the others get 408 at the header timeout and their
         // slots free again.
