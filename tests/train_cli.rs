@@ -550,4 +550,16 @@ fn a_hand_edited_config_out_of_range_is_refused_on_resume() {
         );
         assert_eq!(steps_done(&dir), 200);
     }
+    // The state's own numbers too: a wall time of −1e308 seconds was taken as it stood.
+    std::fs::write(&meta_path, &good).unwrap();
+    let state_path = dir.join("train_state.json");
+    let mut state: Value = serde_json::from_slice(&std::fs::read(&state_path).unwrap()).unwrap();
+    state["wall_time_s"] = (-1e308).into();
+    std::fs::write(&state_path, serde_json::to_vec(&state).unwrap()).unwrap();
+    let out = gaitscope(&["train", "--resume", d, "--steps", "300", "--quiet"]);
+    let e = stderr(&out);
+    assert!(
+        !out.status.success() && e.contains("wall_time_s -1e308 must lie in [0,"),
+        "{e}"
+    );
 }

@@ -100,11 +100,26 @@ fn read_state(path: &Path) -> Result<TrainState, TrainError> {
             source,
         }
     })?;
-    serde_json::from_str(&text).map_err(|e| TrainError::State {
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::State {
         path: path.to_owned(),
         reason: e.into(),
-    })
+    })?;
+    // The time a run has trained: what the summary divides by. A century is past any run.
+    if !(0.0..=MAX_WALL_TIME_S).contains(&state.wall_time_s) {
+        return Err(TrainError::State {
+            path: path.to_owned(),
+            reason: format!(
+                "wall_time_s {:e} must lie in [0, {MAX_WALL_TIME_S:e}] seconds",
+                state.wall_time_s
+            )
+            .into(),
+        });
+    }
+    Ok(state)
 }
+
+/// The most wall time a run's state may record, in seconds (a hundred years).
+const MAX_WALL_TIME_S: f64 = 100.0 * 365.25 * 86_400.0;
 
 /// What a run is, as the command line states it: a resume must match the run's own (and may
 /// leave any of it out); a fresh run takes it.
