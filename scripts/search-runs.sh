@@ -6,6 +6,8 @@
 #
 #   scripts/search-runs.sh [NAME...]   # all searches, or the named ones
 set -euo pipefail
+# One function, read whole before it runs: bash would read an edited file from the old offset.
+main() {
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/gaitscope/target}"
@@ -26,6 +28,11 @@ searches=(
   "encoder-lstm-k2|--checkpoint checkpoints/encoder-lstm --budget 2"
   "baseline-k3|--checkpoint checkpoints/baseline --budget 3"
   "encoder-lstm-k3|--checkpoint checkpoints/encoder-lstm --budget 3"
+  # A shove instead of damage: joints all but whole (K = 0.05), one push of at most 1 N·s
+  # (the Ant is 0.9 kg: up to about 1 m/s at once).
+  "baseline-push1|--checkpoint checkpoints/baseline --budget 0.05 --push-impulse 1"
+  "baseline-push5|--checkpoint checkpoints/baseline --budget 0.05 --push-impulse 5"
+  "lstm-fails-baseline-succeeds-push1|--checkpoint checkpoints/encoder-lstm --against checkpoints/baseline --budget 0.05 --push-impulse 1"
 )
 for entry in "${searches[@]}"; do
   name=${entry%%|*}
@@ -35,3 +42,6 @@ for entry in "${searches[@]}"; do
   # shellcheck disable=SC2086
   "$bin" search ${entry#*|} "${common[@]}" --out "$out/$name" > /dev/null
 done
+}
+
+main "$@"; exit
