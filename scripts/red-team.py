@@ -53,7 +53,13 @@ class Tally:
 def run(binary, args, cwd, limit=LIMIT_S, env=None):
     """(outcome, stderr, seconds, peak RSS in MB) of one command, killed at the limit."""
     start = time.monotonic()
-    p = subprocess.Popen([binary, *args], cwd=cwd, stdout=subprocess.DEVNULL,
+    # GNU time measures the command's own peak RSS: rusage from wait4 here would include this
+    # Python process's size at the fork (Linux keeps the pre-exec image's high-water mark).
+    rss_file = tempfile.NamedTemporaryFile(prefix="rss-", delete=False)
+    rss_file.close()
+    timed = ["/usr/bin/time", "-q", "-f", "%M", "-o", rss_file.name] if os.path.exists(
+        "/usr/bin/time") else []
+    p = subprocess.Popen([*timed, binary, *args], cwd=cwd, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
                          env=env, start_new_session=True)
     # stderr is read on the side so a chatty child never blocks on a full pipe.
@@ -75,11 +81,17 @@ def run(binary, args, cwd, limit=LIMIT_S, env=None):
     reader.join(5)
     err = (chunks[0] if chunks else b"").decode(errors="replace")
     secs = time.monotonic() - start
-    rss = usage.ru_maxrss / 1024.0
+    try:
+        rss = float(Path(rss_file.name).read_text().split()[-1]) / 1024.0
+    except (ValueError, IndexError):
+        rss = usage.ru_maxrss / 1024.0
+    os.unlink(rss_file.name)
     code = os.waitstatus_to_exitcode(status)
+    # GNU time exits 128 + N when the command died of signal N.
+    killed = code < 0 or (timed and code > 128)
     if hung:
         return "hangs", err, secs, rss
-    if "panicked" in err or code < 0 or code == 101:
+    if "panicked" in err or killed or code == 101:
         return "panics", err, secs, rss
     return ("accepted" if code == 0 else "refused"), err, secs, rss
 
@@ -562,7 +574,6 @@ def main():
     ap.add_argument("--accepted", action="store_true", help="list the accepted cases too")
     ap.add_argument("--only", help="comma-separated surfaces: states,pushes,runs,recordings,sb3,web")
     args = ap.parse_args()
-    rng = random.Random(49)
     t = Tally()
     surfaces = {"states": saved_states, "pushes": pushes, "runs": run_folders,
                 "recordings": recordings, "sb3": sb3_archives, "web": web}
@@ -570,6 +581,9 @@ def main():
     with tempfile.TemporaryDirectory(prefix="red-team-") as work:
         for name in chosen:
             started = time.monotonic()
+            # One seeded generator per surface: a surface's cases are the same run alone or
+            # with the others.
+            rng = random.Random(f"issue-49-{name}")
             surfaces[name](t, args.bin, Path(work), rng)
             print(f"{name}: {time.monotonic() - started:.0f} s", file=sys.stderr)
     cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")

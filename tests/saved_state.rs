@@ -233,6 +233,11 @@ fn bad_state_files_are_clear_errors() {
             &|v: &mut Value| v["torso_xy"][1] = (-2e4).into(),
             "torso_xy[1] is -20000, expected a number in [-10000, 10000]",
         ),
+        (
+            // The red team's: a label that disagrees with the damage it names was taken.
+            &|v: &mut Value| v["condition"] = "healthy".into(),
+            "condition: 'healthy', but the state's damage says 'severe'",
+        ),
     ] {
         let err = with(edit);
         assert!(err.contains(reason), "{reason}: {err}");

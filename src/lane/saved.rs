@@ -233,6 +233,24 @@ impl StartState {
                     ));
                 }
             }
+            // The label a person reads must say what the state holds (the saver writes it from
+            // the damage below): a label edited to "x" or "healthy" over a severe state is refused.
+            let d = &saved.env.damage;
+            let label = if d.fatigue_triggers {
+                d.condition.name()
+            } else {
+                "manual"
+            };
+            if let Some(given) = &saved.condition
+                && given != label
+            {
+                return Err(format!(
+                    "condition: '{given}', but the state's damage says '{label}' (damage.condition \
+                     {}, fatigue triggers {})",
+                    d.condition.name(),
+                    if d.fatigue_triggers { "on" } else { "off" }
+                ));
+            }
             if saved.format != STATE_FORMAT {
                 return Err(format!(
                     "format '{}' (this gaitscope reads {STATE_FORMAT})",
