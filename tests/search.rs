@@ -78,6 +78,11 @@ fn a_search_writes_replayable_scenarios_and_reruns_byte_for_byte() {
     assert_eq!(phase("search"), 6);
     assert_eq!(phase("reference"), 6);
     assert_eq!(phase("held-out"), 5); // top 2, reference best, minimal, no damage
+    // The search seeds with no damage, once, last: the search column's reference.
+    assert_eq!(phase("undamaged"), 1);
+    let last = log.last().unwrap();
+    assert_eq!(last["phase"], "undamaged");
+    assert_eq!(last["outcomes"][0].as_array().unwrap().len(), 4);
     assert!(phase("shrink") <= 4);
     for c in &log {
         assert!(c["severity"].as_f64().unwrap() <= 1.5 + 1e-9, "{c}");
@@ -147,6 +152,14 @@ fn a_search_writes_replayable_scenarios_and_reruns_byte_for_byte() {
     assert_eq!(replayed, searched);
     let summary = std::fs::read_to_string(a.join("summary.md")).unwrap();
     assert!(summary.contains("| `top-1.json` | cma |"), "{summary}");
+    let undamaged = last["success"][0].as_f64().unwrap();
+    assert!(
+        summary.contains(&format!(
+            "| (no damage) | – | – | 0 | – | {:.1} % |",
+            100.0 * undamaged
+        )),
+        "{summary}"
+    );
     assert!(
         summary.contains("`reference-best.json` | random"),
         "{summary}"

@@ -302,6 +302,9 @@ pub enum Phase {
     Reference,
     HeldOut,
     Shrink,
+    /// No damage on the search seeds: what those seeds give anyway, the level the search's
+    /// own success rates are to be read against.
+    Undamaged,
 }
 
 /// One line of candidates.jsonl.
@@ -614,6 +617,8 @@ pub struct SearchReport {
     pub shrunk_held_out: Confirmed,
     /// Success per model on the held-out seeds with no damage (the reference for the rest).
     pub undamaged: Vec<Rate>,
+    /// Success per model on the search seeds with no damage (the search column's reference).
+    pub undamaged_search: Vec<f64>,
     /// The recording of top-1's worst held-out episode, and its seed.
     pub worst: Option<(PathBuf, u64)>,
     /// The files written, for the terminal.
@@ -680,7 +685,7 @@ pub fn run(
     }
     let log = Log::open(&log_path)?;
     let total = opts.evaluations * (1 + opts.reference as usize)
-        + (opts.top + opts.reference as usize + 2)
+        + (opts.top + opts.reference as usize + 3)
         + opts.shrink_evaluations;
     let progress = crate::progress::bar(total as u64, "search candidates");
     let mut run = Run {
@@ -724,6 +729,15 @@ pub fn run(
         &held_out_seeds,
     )?;
     let undamaged = undamaged.outcomes.iter().map(|o| success(o)).collect();
+    // And the search seeds with no damage: a search success rate near this one found nothing.
+    let undamaged_search = run
+        .evaluate(
+            Phase::Undamaged,
+            opts.method,
+            &Schedule::healthy(),
+            &opts.search_seeds(),
+        )?
+        .success;
     run.progress.finish_and_clear();
     let worst = record_worst(opts, evaluator, &top[0], out)?;
     let mut report = SearchReport {
@@ -736,6 +750,7 @@ pub fn run(
         shrunk,
         shrunk_held_out,
         undamaged,
+        undamaged_search,
         worst: worst.clone(),
         written: vec![options_path, log_path],
     };
@@ -1035,7 +1050,13 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         ));
     }
     md.push_str(&format!(
-        "| (no damage) | – | – | 0 | – | – | {} |\n",
+        "| (no damage) | – | – | 0 | – | {} | {} |\n",
+        report
+            .undamaged_search
+            .iter()
+            .map(|s| format!("{:.1} %", 100.0 * s))
+            .collect::<Vec<_>>()
+            .join(" vs "),
         report
             .undamaged
             .iter()
@@ -1046,7 +1067,8 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
     let best = |c: &[Candidate]| c.iter().map(|c| c.score).fold(f64::NEG_INFINITY, f64::max);
     md.push_str(&format!(
         "\nSuccess is per model ({}). Search success is on the seeds the search chose by, so it is \
-         biased toward failure (the winner's curse); the held-out column is the estimate, with 95 % \
+         biased toward failure (the winner's curse): read it against the no-damage row's search \
+         success, the same seeds undamaged; the held-out column is the estimate, with 95 % \
          Wilson intervals.\n\nBest score: {} {:.3}{}.\n\n",
         o.models
             .iter()
@@ -1410,6 +1432,8 @@ mod tests {
         }
         let best = &report.top[0];
         assert!(PlantedPush::fails(&best.search.schedule), "{best:?}");
+        // The search seeds undamaged: the planted evaluator succeeds there.
+        assert_eq!(report.undamaged_search, vec![1.0]);
         // Shrunk to the push alone, which still fails, and no single reduction of it does.
         let s = &report.shrunk.candidate.schedule;
         assert!(report.shrunk.minimal);
