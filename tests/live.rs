@@ -381,6 +381,21 @@ fn live_streams_to_a_stock_viewer_started_by_the_test() {
     }
     let report = sim.shutdown().expect("every step reached the viewer");
     assert_eq!(report.steps, steps);
+    // The viewer writes what it ingests as it goes, behind its socket: a SIGINT sent the moment
+    // our side has flushed could stop it before it wrote the last steps (0 of 30 once, under
+    // load). Give it up to 10 s to have them in the file.
+    let root = format!("/{}", LIVE_ROOTS[0]);
+    let written = || {
+        received.exists()
+            && common::rows(
+                &common::read_rrd(&received),
+                &format!("{root}/goal/distance"),
+            ) >= steps as usize
+    };
+    let settle = std::time::Instant::now() + Duration::from_secs(10);
+    while !written() && std::time::Instant::now() < settle {
+        std::thread::sleep(Duration::from_millis(100));
+    }
     // SIGINT: the viewer closes its file as a person's Ctrl-C would.
     let _ = std::process::Command::new("kill")
         .args(["-INT", &server.0.id().to_string()])
@@ -394,7 +409,6 @@ fn live_streams_to_a_stock_viewer_started_by_the_test() {
         std::thread::sleep(Duration::from_millis(100));
     }
     let chunks = common::read_rrd(&received);
-    let root = format!("/{}", LIVE_ROOTS[0]);
     let distance = common::rows(&chunks, &format!("{root}/goal/distance"));
     assert_eq!(distance as u64, steps, "every step reached the viewer");
     common::assert_no_static_shadowing(&chunks);
