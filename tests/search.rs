@@ -102,53 +102,7 @@ fn a_search_writes_replayable_scenarios_and_reruns_byte_for_byte() {
             .count(),
         top["edits"].as_array().unwrap().len()
     );
-    let eval_dir = dir.path().join("eval");
-    let o = gaitscope(&[
-        "eval",
-        "--checkpoint",
-        "checkpoints/baseline",
-        "--scenario",
-        a.join("top-1.json").to_str().unwrap(),
-        "--conditions",
-        "healthy",
-        "--episodes",
-        "6",
-        "--max-steps",
-        "150",
-        "--out",
-        eval_dir.to_str().unwrap(),
-    ])
-    .output()
-    .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let eval: Value =
-        serde_json::from_str(&std::fs::read_to_string(eval_dir.join("eval.json")).unwrap())
-            .unwrap();
-    let replayed: Vec<(u64, bool, u64)> = eval["episodes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|e| e["condition"] == "search-top-1")
-        .map(|e| {
-            (
-                e["seed"].as_u64().unwrap(),
-                e["success"].as_bool().unwrap(),
-                e["steps"].as_u64().unwrap(),
-            )
-        })
-        .collect();
-    let searched: Vec<(u64, bool, u64)> = held["outcomes"][0]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| {
-            (
-                e["seed"].as_u64().unwrap(),
-                e["success"].as_bool().unwrap(),
-                e["steps"].as_u64().unwrap(),
-            )
-        })
-        .collect();
+    let (replayed, searched) = replayed_vs_searched(&a, "top-1.json");
     assert_eq!(replayed, searched);
     let summary = std::fs::read_to_string(a.join("summary.md")).unwrap();
     assert!(summary.contains("| `top-1.json` | cma |"), "{summary}");
@@ -253,19 +207,13 @@ fn bad_search_input_is_refused_clearly() {
 /// An episode as (seed, success, steps).
 type Episode = (u64, bool, u64);
 
-/// The held-out outcomes of one file's schedule, and eval --scenario's replay of that file.
-fn replayed_vs_searched(
-    dir: &Path,
-    file: &str,
-    nth_held_out: usize,
-) -> (Vec<Episode>, Vec<Episode>) {
+/// eval --scenario's replay of a search folder's `file`, and the held-out outcomes of its
+/// schedule in the log (`top-1.json`'s held-out run is the log's first).
+fn replayed_vs_searched(dir: &Path, file: &str) -> (Vec<Episode>, Vec<Episode>) {
     let log = lines(&dir.join("candidates.jsonl"));
-    let held = log
-        .iter()
-        .filter(|c| c["phase"] == "held-out")
-        .nth(nth_held_out)
-        .unwrap();
-    let out = dir.join(format!("eval-{file}"));
+    let held = log.iter().find(|c| c["phase"] == "held-out").unwrap();
+    let stem = file.trim_end_matches(".json");
+    let out = dir.join(format!("eval-{stem}"));
     let o = gaitscope(&[
         "eval",
         "--checkpoint",
@@ -297,7 +245,7 @@ fn replayed_vs_searched(
         .as_array()
         .unwrap()
         .iter()
-        .filter(|e| e["condition"].as_str().unwrap().starts_with("search-"))
+        .filter(|e| e["condition"] == format!("search-{stem}"))
         .map(triple)
         .collect();
     let searched = held["outcomes"][0]
@@ -355,7 +303,7 @@ fn a_search_with_pushes_writes_pushes_that_replay_and_stay_within_the_impulse() 
         .filter(|e| e.get("push").is_some())
         .count();
     assert_eq!(push_edits, held["schedule"].get("push").is_some() as usize);
-    let (replayed, searched) = replayed_vs_searched(&a, "top-1.json", 0);
+    let (replayed, searched) = replayed_vs_searched(&a, "top-1.json");
     assert_eq!(replayed, searched);
     // The same rerun writes the same bytes.
     let b = dir.path().join("b");

@@ -188,7 +188,8 @@ impl SearchOptions {
             let most = PushSpace::max_impulse(p.step_seconds);
             if !(p.impulse.is_finite() && p.impulse > 0.0 && p.impulse <= most) {
                 return bad(format!(
-                    "--push-impulse must lie in (0, {most}] N·s (a push of at most {} N for at                      most {} steps of {} s), got {}",
+                    "--push-impulse must lie in (0, {most}] N·s (a push of at most {} N for at \
+                     most {} steps of {} s), got {}",
                     crate::damage::MAX_PUSH_NEWTONS,
                     space::MAX_SEARCH_PUSH_STEPS,
                     p.step_seconds,
@@ -1281,20 +1282,25 @@ mod tests {
             seeds: &[u64],
         ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
             self.calls.fetch_add(1, Ordering::SeqCst);
-            let fail = Self::fails(s);
             let d = 3.0 * (1.0 - s.scales[HIP_2]) * (1.0 - s.onsets[HIP_2] as f64 / 101.0);
-            Ok(vec![
-                seeds
-                    .iter()
-                    .map(|&seed| EpisodeOutcome {
-                        seed,
-                        success: !fail,
-                        steps: 100,
-                        final_distance: round9(d),
-                    })
-                    .collect(),
-            ])
+            Ok(planted_outcomes(seeds, Self::fails(s), d))
         }
+    }
+
+    /// One model's episodes on `seeds`, all failing or all succeeding, each ending `distance`
+    /// from the goal: what a planted evaluator returns.
+    fn planted_outcomes(seeds: &[u64], fail: bool, distance: f64) -> Vec<Vec<EpisodeOutcome>> {
+        vec![
+            seeds
+                .iter()
+                .map(|&seed| EpisodeOutcome {
+                    seed,
+                    success: !fail,
+                    steps: 100,
+                    final_distance: round9(distance),
+                })
+                .collect(),
+        ]
     }
 
     fn options(method: Method, evaluations: usize) -> SearchOptions {
@@ -1392,22 +1398,11 @@ mod tests {
             seeds: &[u64],
         ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
             self.0.calls.fetch_add(1, Ordering::SeqCst);
-            let fail = Self::fails(s);
             let d = s.push.as_ref().map_or(0.0, |p| {
                 let torso = if p.body == "torso" { 1.0 } else { 0.3 };
                 torso * (p.impulse(0.05) / 40.0).min(1.0) * (1.0 - p.onset as f64 / 101.0)
             });
-            Ok(vec![
-                seeds
-                    .iter()
-                    .map(|&seed| EpisodeOutcome {
-                        seed,
-                        success: !fail,
-                        steps: 100,
-                        final_distance: round9(3.0 * d),
-                    })
-                    .collect(),
-            ])
+            Ok(planted_outcomes(seeds, Self::fails(s), 3.0 * d))
         }
     }
 

@@ -307,6 +307,19 @@ mod tests {
         .map(String::from)
     }
 
+    /// `n` genes uniform in [−spread, spread] from a 64-bit LCG (genes outside [0, 1] test the
+    /// reflection).
+    fn genome(rng: &mut u64, n: usize, spread: f64) -> Vec<f64> {
+        (0..n)
+            .map(|_| {
+                *rng = rng
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((*rng >> 11) as f64 / (1u64 << 53) as f64) * 2.0 * spread - spread
+            })
+            .collect()
+    }
+
     #[test]
     fn decoded_schedules_keep_the_budget_and_the_box() {
         let space = Space {
@@ -316,15 +329,7 @@ mod tests {
         };
         let mut rng = 12345u64;
         for _ in 0..2000 {
-            let genome: Vec<f64> = (0..GENES)
-                .map(|_| {
-                    rng = rng
-                        .wrapping_mul(6364136223846793005)
-                        .wrapping_add(1442695040888963407);
-                    ((rng >> 11) as f64 / (1u64 << 53) as f64) * 8.0 - 4.0
-                })
-                .collect();
-            let s = space.decode(&genome);
+            let s = space.decode(&genome(&mut rng, GENES, 4.0));
             assert!(s.severity() <= 1.5 + 1e-9, "{s:?}");
             assert!(s.scales.iter().all(|&x| (0.0..=1.0).contains(&x)));
             assert!(s.onsets.iter().all(|&t| t <= 100));
@@ -470,15 +475,7 @@ mod tests {
             let mut rng = 99u64;
             let mut pushes = 0;
             for _ in 0..2000 {
-                let genome: Vec<f64> = (0..space.genes())
-                    .map(|_| {
-                        rng = rng
-                            .wrapping_mul(6364136223846793005)
-                            .wrapping_add(1442695040888963407);
-                        ((rng >> 11) as f64 / (1u64 << 53) as f64) * 6.0 - 3.0
-                    })
-                    .collect();
-                let Some(p) = space.decode(&genome).push else {
+                let Some(p) = space.decode(&genome(&mut rng, space.genes(), 3.0)).push else {
                     continue;
                 };
                 pushes += 1;
