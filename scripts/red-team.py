@@ -21,6 +21,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -64,7 +65,6 @@ def run(binary, args, cwd, limit=LIMIT_S, env=None):
                          env=env, start_new_session=True)
     # stderr is read on the side so a chatty child never blocks on a full pipe.
     chunks = []
-    import threading
     reader = threading.Thread(target=lambda: chunks.append(p.stderr.read()), daemon=True)
     reader.start()
     hung = False
