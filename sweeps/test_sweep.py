@@ -101,7 +101,7 @@ class Sweeps(unittest.TestCase):
             'bogus_flag = 3\n[grid]\nseed = [0]\n': "unknown key 'bogus_flag'",
             '[grid]\nencoder = ["none", "transformer"]\n': "no encoder 'transformer'",
             '[grid]\n"damage.threshhold" = [20.0]\n': "the config from the grid's dotted keys is not a valid gaitscope config: unknown field `threshhold`",
-            '[grid]\n"damage.threshold" = [-5.0]\n': "damage.threshold > 0 (got 1, 0.1, -5)",
+            '[grid]\n"damage.threshold" = [-5.0]\n': "damage.threshold in (0, 1e12] (got 1, 0.1, -5)",
             'learning_starts = "soon"\n[grid]\nseed = [0]\n': "invalid value 'soon' for '--learning-starts",
             'out = "elsewhere"\n[grid]\nseed = [0]\n': "set by the launcher",
             'cpus_per_trial = 0\n[grid]\nseed = [0]\n': "cpus_per_trial must be an integer",
