@@ -1049,7 +1049,40 @@ fn every_port_checks_host_and_bounds_connections() {
         if direct.contains("control page") {
             assert!(direct.starts_with("HTTP/1.1 403"), "{direct}");
         }
+        // Nor the web viewer's files: its server too answers only what its guard stamped.
+        let viewer = raw_http(
+            p,
+            &format!(
+                "GET /index.html HTTP/1.1\r\nHost: 127.0.0.1:{p}\r\nConnection: close\r\n\r\n"
+            ),
+        );
+        assert!(
+            !viewer
+                .to_ascii_lowercase()
+                .contains("content-type: text/html"),
+            "port {p} served the web viewer around the guard: {}",
+            &viewer[..viewer.len().min(300)]
+        );
+        if viewer.contains("web viewer") {
+            assert!(viewer.starts_with("HTTP/1.1 403"), "{viewer}");
+        }
     }
+    // Through its public port the viewer is served whole.
+    let page = raw_http(
+        viewer_port,
+        &format!(
+            "GET /index.html HTTP/1.1\r\nHost: 127.0.0.1:{viewer_port}\r\nConnection: close\r\n\r\n"
+        ),
+    );
+    assert!(
+        page.starts_with("HTTP/1.1 200"),
+        "{}",
+        &page[..page.len().min(300)]
+    );
+    assert!(
+        page.to_ascii_lowercase()
+            .contains("content-type: text/html")
+    );
     // A flood of step commands: the queue is bounded (refused with a reason past it), memory
     // stays flat, and pause stops the steps still queued.
     let rss_mb = || {

@@ -21,6 +21,8 @@ pub mod panel;
 #[cfg(feature = "web")]
 pub mod guard;
 #[cfg(feature = "web")]
+mod viewer_assets;
+#[cfg(feature = "web")]
 pub mod web;
 
 pub use breakpoint::{BreakHit, Breakpoint, BreakpointError};

@@ -4,7 +4,7 @@
 //!  control page ──POST /command (JSON) ──▶ WebRequest → Command ──▶ sim thread (as the panel)
 //!        ▲                                                            │
 //!        └──── GET /events (server-sent events: the Snapshot, ≤ 20 Hz) ◀┘
-//!  Rerun web viewer (HTTP, embedded by the rerun crate) ◀── gRPC server ◀── the same stream
+//!  Rerun web viewer (its files, served by us) ◀── Rerun gRPC server ◀── the same stream
 //! ```
 //! The page is a front-end like the egui panel: it only sends [`Command`]s (through
 //! [`commands`], which checks each request against the snapshot first) and reads
@@ -160,9 +160,9 @@ pub enum WebError {
 /// and size, Host check on loopback), and the loopback ports of the servers behind them.
 pub struct Front {
     guards: Vec<super::guard::Guard>,
-    /// What the control page's guard stamps on every request it relays
-    /// ([`super::guard::GUARD_HEADER`]); the control server refuses a request without it.
-    control_secret: String,
+    /// What the control page's and the web viewer's guards stamp on every request they relay
+    /// ([`super::guard::GUARD_HEADER`]); the servers behind them refuse a request without it.
+    secret: String,
     pub control_backend: u16,
     pub viewer_backend: u16,
     pub grpc_backend: u16,
@@ -176,7 +176,7 @@ impl Front {
         let limits = GuardLimits::new(options.is_loopback());
         // 128 bits from the OS-seeded generator: a local process that finds the loopback
         // port behind the guard cannot guess it.
-        let control_secret = format!("{:032x}", rand::random::<u128>());
+        let secret = format!("{:032x}", rand::random::<u128>());
         let mut guards = Vec::new();
         let mut backends = Vec::new();
         for (what, port) in [
@@ -193,9 +193,10 @@ impl Front {
             let listener = TcpListener::bind(addr).map_err(bind_error)?;
             let backend = free_loopback_port().map_err(bind_error)?;
             let to = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), backend);
-            // Rerun's servers take no secret; our control server requires one.
+            // Our control and viewer servers require the secret; Rerun's gRPC server takes
+            // none (HTTP/2 frames carry no header the relay could add).
             let limits = GuardLimits {
-                secret: (guards.is_empty()).then(|| control_secret.clone()),
+                secret: (what != "gRPC stream").then(|| secret.clone()),
                 ..limits.clone()
             };
             guards.push(Guard::spawn(listener, to, limits, what).map_err(bind_error)?);
@@ -203,7 +204,7 @@ impl Front {
         }
         Ok(Self {
             guards,
-            control_secret,
+            secret,
             control_backend: backends[0],
             viewer_backend: backends[1],
             grpc_backend: backends[2],
@@ -216,12 +217,12 @@ impl Front {
     }
 }
 
-/// The running web front-end: Rerun's web viewer and the control page's HTTP server, on
-/// loopback behind the [`Front`]'s guards.
+/// The running web front-end: Rerun's web viewer (its files, served by us) and the control
+/// page's HTTP server, on loopback behind the [`Front`]'s guards.
 pub struct WebServer {
     options: WebOptions,
     control: tiny_http::Server,
-    _viewer: re_web_viewer_server::WebViewerServer,
+    _viewer: super::viewer_assets::ViewerAssets,
     front: Front,
     /// Checkpoint folders the page may open (the page never names an arbitrary path).
     checkpoints: Vec<PathBuf>,
@@ -250,9 +251,11 @@ impl WebServer {
         checkpoints: Vec<PathBuf>,
         findings: Vec<crate::search::Finding>,
     ) -> Result<Self, WebError> {
-        let viewer =
-            re_web_viewer_server::WebViewerServer::new("127.0.0.1", front.viewer_backend.into())
-                .map_err(|e| WebError::Viewer(e.into()))?;
+        let viewer = super::viewer_assets::ViewerAssets::start(
+            SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), front.viewer_backend),
+            front.secret.clone(),
+            options.is_loopback(),
+        )?;
         let addr = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), front.control_backend);
         // tiny_http's error is already a boxed error: the cause as it is.
         let control = tiny_http::Server::http(addr).map_err(|reason| WebError::Bind {
@@ -397,7 +400,7 @@ impl WebServer {
                 .map(|h| h.value.as_str().to_string())
         };
         // Only what came through the guard: its loopback port is open to any local process.
-        if get(super::guard::GUARD_HEADER).as_deref() != Some(self.front.control_secret.as_str()) {
+        if get(super::guard::GUARD_HEADER).as_deref() != Some(self.front.secret.as_str()) {
             return Err("this port is served through the control page's public port only".into());
         }
         if self.options.is_loopback() {
