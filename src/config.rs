@@ -27,9 +27,10 @@ pub const PAPER_WORLD: &str = "paper";
 
 /// The shipped worlds (`--world NAME`; `worlds/NAME.json`, docs/world.md): a world is a named
 /// config — env settings and a damage distribution — recorded in every checkpoint trained in it.
-pub const WORLDS: [(&str, &str); 2] = [
+pub const WORLDS: [(&str, &str); 3] = [
     (PAPER_WORLD, include_str!("../worlds/paper.json")),
     ("dead-joints", include_str!("../worlds/dead-joints.json")),
+    ("dead-legs", include_str!("../worlds/dead-legs.json")),
 ];
 
 /// Everything that defines the damaged-Ant task.
@@ -405,7 +406,11 @@ mod tests {
         let dead = GaitConfig::world("dead-joints").unwrap();
         assert!(dead.damage.dead.is_some() && !dead.damage.fatigue);
         let err = GaitConfig::world("moon").unwrap_err().to_string();
-        assert!(err.contains("paper, dead-joints"), "{err}");
+        assert!(err.contains("paper, dead-joints, dead-legs"), "{err}");
+        // dead-legs: whole legs only, 0 / 1 / 2 of them, all dead by step 60.
+        let legs = GaitConfig::world("dead-legs").unwrap().damage.dead.unwrap();
+        assert_eq!(legs.unit, crate::damage::DeadUnit::Leg);
+        assert_eq!(legs.onset, [10, 60]);
         // The paper world writes no name (its checkpoints read as before); others do.
         assert!(
             !serde_json::to_string(&GaitConfig::default())

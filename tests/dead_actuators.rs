@@ -127,6 +127,43 @@ fn the_death_count_follows_the_condition() {
 }
 
 #[test]
+fn in_the_dead_legs_world_whole_legs_die_by_step_60() {
+    for (condition, legs) in [
+        (Condition::Healthy, 0),
+        (Condition::Mild, 1),
+        (Condition::Severe, 2),
+    ] {
+        let mut world = GaitConfig::world("dead-legs").expect("shipped world");
+        world.damage.condition = ConditionChoice::Fixed(condition);
+        let mut env = AntEnv::new(world, 0).unwrap();
+        for seed in 0..40 {
+            env.reset_with_seed(seed);
+            let deaths = env.pending_deaths().to_vec();
+            assert_eq!(
+                deaths.len(),
+                2 * legs,
+                "{condition}, seed {seed}: {deaths:?}"
+            );
+            // A leg dies whole (hip and ankle at the same onset, in [10, 60]) or not at all.
+            let onset = |a: usize| deaths.iter().find(|d| d.actuator == a).map(|d| d.step);
+            let mut dead_legs = 0;
+            for [hip, ankle] in env.leg_actuators() {
+                assert_eq!(
+                    onset(hip),
+                    onset(ankle),
+                    "{condition}, seed {seed}: {deaths:?}"
+                );
+                if let Some(step) = onset(hip) {
+                    assert!((10..=60).contains(&step), "{deaths:?}");
+                    dead_legs += 1;
+                }
+            }
+            assert_eq!(dead_legs, legs);
+        }
+    }
+}
+
+#[test]
 fn deaths_to_come_survive_snapshots_forks_and_saved_states() {
     let world = dead_world(Condition::Severe);
     let (mut env, _) = episode_with_deaths(&world);
