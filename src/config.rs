@@ -423,6 +423,31 @@ mod tests {
     }
 
     #[test]
+    fn each_world_says_what_its_conditions_mean() {
+        use crate::damage::Condition;
+        let paper = GaitConfig::default().damage;
+        assert_eq!(
+            paper.condition_meaning(Condition::Healthy),
+            "fatigue weakens no joint"
+        );
+        assert_eq!(
+            paper.condition_meaning(Condition::Mild),
+            "a joint whose fatigue reaches 30 keeps 0.5× its torque"
+        );
+        let legs = GaitConfig::world("dead-legs").unwrap().damage;
+        assert_eq!(legs.condition_meaning(Condition::Healthy), "nothing dies");
+        assert_eq!(
+            legs.condition_meaning(Condition::Severe),
+            "2 legs die, each from a step in 10–60"
+        );
+        let joints = GaitConfig::world("dead-joints").unwrap().damage;
+        assert_eq!(
+            joints.condition_meaning(Condition::Mild),
+            "1 joint or leg dies, from a step in 10–120"
+        );
+    }
+
+    #[test]
     fn a_world_file_must_be_a_bounded_regular_file() {
         let err = GaitConfig::from_json_file(Path::new("/dev/zero"))
             .unwrap_err()

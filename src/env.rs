@@ -239,6 +239,9 @@ pub struct AntEnv {
     plan: Option<crate::damage::scenario::ScenarioPlan>,
     /// This episode's deaths still to come (a world with dead actuators), by onset.
     dead_plan: Vec<DeadOnset>,
+    /// Whether a reset draws the world's deaths (off in the live viewer's manual condition,
+    /// where only a hand damages joints); kept across resets.
+    world_deaths: bool,
     /// The model's named bodies (id order), what a push may name.
     bodies: Vec<(String, usize)>,
     /// Pushes still to act, and those that acted during the last step.
@@ -361,6 +364,7 @@ impl AntEnv {
             unstable_warnings: 0,
             plan: None,
             dead_plan: Vec::new(),
+            world_deaths: true,
             bodies,
             pushes: Pushes::default(),
         };
@@ -441,8 +445,13 @@ impl AntEnv {
         // its episodes are as before).
         self.dead_plan = match &self.config.damage.dead {
             Some(dead) => {
+                // Drawn either way, so the episode's later draws do not depend on it.
                 let seed: u64 = self.rng.random();
-                dead.plan(condition, seed, &self.leg_actuators())
+                if self.world_deaths {
+                    dead.plan(condition, seed, &self.leg_actuators())
+                } else {
+                    Vec::new()
+                }
             }
             None => Vec::new(),
         };
@@ -1010,6 +1019,10 @@ impl AntEnv {
     /// Whether fatigue triggers joints (see [`DamageState::set_fatigue_triggers`]).
     pub fn set_fatigue_triggers(&mut self, on: bool) {
         self.damage.set_fatigue_triggers(on);
+    }
+    /// Whether the next resets draw the world's deaths (see [`Self::pending_deaths`]).
+    pub fn set_world_deaths(&mut self, on: bool) {
+        self.world_deaths = on;
     }
 }
 

@@ -220,6 +220,36 @@ fn deaths_to_come_survive_snapshots_forks_and_saved_states() {
 }
 
 #[test]
+fn without_world_damage_no_world_death_comes() {
+    // The live viewer's manual condition: only a hand damages joints, in every world.
+    let mut world = GaitConfig::world("dead-legs").expect("shipped world");
+    world.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+    let dir = tempfile::tempdir().unwrap();
+    save_model(dir.path(), NetConfig::ant(EncoderKind::None), &world);
+    let actor = Actor::load(dir.path()).unwrap();
+    let mut lane = Lane::new(&actor, &world, 4).unwrap();
+    assert_eq!(lane.env().pending_deaths().len(), 4, "severe: two legs");
+    let start = lane.env().qpos().to_vec();
+    lane.set_world_damage(false);
+    lane.reset(4);
+    assert!(lane.env().pending_deaths().is_empty());
+    // The same start: the deaths' draw is made and dropped, not skipped.
+    assert_eq!(lane.env().qpos(), &start[..]);
+    while lane.steps() < 80 && !lane.is_done() {
+        lane.advance(&actor, ActionMode::Deterministic).unwrap();
+    }
+    assert!(lane.env().damage().dead().iter().all(|&d| !d));
+    assert_eq!(lane.env().damage().scale(), &[1.0; N_ACTUATORS]);
+    lane.set_world_damage(true);
+    lane.reset(4);
+    assert_eq!(
+        lane.env().pending_deaths().len(),
+        4,
+        "on again from the next reset"
+    );
+}
+
+#[test]
 fn a_fork_heals_a_dead_joint_by_hand() {
     let world = dead_world(Condition::Mild);
     let dir = tempfile::tempdir().unwrap();

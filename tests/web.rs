@@ -374,6 +374,35 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             .unwrap();
         assert_eq!(heading, "encoder-lstm");
         assert_eq!(lane_step(&s), 0);
+        // The page says what the condition means in the model's world (the bundled model's is
+        // the paper's); each option says its own on hover.
+        assert_eq!(s["world"], "paper");
+        assert_eq!(
+            s["condition_meanings"]["mild"],
+            "a joint whose fatigue reaches 30 keeps 0.5× its torque"
+        );
+        let meaning = client
+            .find(Locator::Id("condition-meaning"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert_eq!(
+            meaning,
+            "world paper: manual = only what a hand does (fail now: 0.1× torque)"
+        );
+        let severe_hint = client
+            .find(Locator::Css("#condition option:nth-child(3)"))
+            .await
+            .unwrap()
+            .attr("title")
+            .await
+            .unwrap();
+        assert_eq!(
+            severe_hint.as_deref(),
+            Some("a joint whose fatigue reaches 30 keeps 0.1× its torque")
+        );
         // The page says how the web viewer gets the stream (gaitscope::telemetry::WEB_STREAM_BATCH).
         let note = client
             .find(Locator::Id("viewer-note"))

@@ -66,8 +66,21 @@ impl LiveCondition {
         }
     }
 
-    pub fn fatigue_triggers(self) -> bool {
+    /// Whether the world damages joints by itself (fatigue triggers, a world's deaths): all
+    /// but manual, where only a hand does.
+    pub fn world_damage(self) -> bool {
         self != LiveCondition::Manual
+    }
+
+    /// What it does in a world with `damage` (the panel's and page's hint).
+    pub fn meaning(self, damage: &crate::damage::DamageConfig) -> String {
+        match self {
+            LiveCondition::Manual => format!(
+                "only what a hand does (fail now: {}× torque)",
+                self.env_condition().scale(&damage.scales)
+            ),
+            c => damage.condition_meaning(c.env_condition()),
+        }
     }
 
     pub fn name(self) -> &'static str {
@@ -267,8 +280,8 @@ mod tests {
                 .contains("manual")
         );
         assert_eq!(LiveCondition::Manual.env_condition(), Condition::Severe);
-        assert!(!LiveCondition::Manual.fatigue_triggers());
-        assert!(LiveCondition::Healthy.fatigue_triggers());
+        assert!(!LiveCondition::Manual.world_damage());
+        assert!(LiveCondition::Healthy.world_damage());
         assert_eq!(LiveCondition::Severe.to_string(), "severe");
     }
 }

@@ -364,8 +364,9 @@ impl Panel {
             egui::ComboBox::from_id_salt("condition")
                 .selected_text(condition.name())
                 .show_ui(ui, |ui| {
-                    for c in LiveCondition::ALL {
-                        ui.selectable_value(&mut condition, c, c.name());
+                    for (c, meaning) in LiveCondition::ALL.into_iter().zip(&v.condition_meanings) {
+                        ui.selectable_value(&mut condition, c, c.name())
+                            .on_hover_text(meaning);
                     }
                 })
                 .response
@@ -392,6 +393,15 @@ impl Panel {
                 self.send(Command::SetStepLimit(limit));
             }
         });
+        // What the chosen condition does in the main model's world (a `dead-legs` "severe" is
+        // two dead legs, the paper's a 0.1× fatigue trigger).
+        if let Some(meaning) = LiveCondition::ALL
+            .iter()
+            .position(|&c| c == v.condition)
+            .map(|i| &v.condition_meanings[i])
+        {
+            ui.weak(format!("world {}: {} = {meaning}", v.world, v.condition));
+        }
         ui.horizontal(|ui| {
             if ui.button("Reset").clicked() {
                 self.send(Command::Reset);

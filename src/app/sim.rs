@@ -203,6 +203,10 @@ pub struct Snapshot {
     pub speed: f64,
     /// Condition, seed and step limit the next reset uses.
     pub condition: LiveCondition,
+    /// The main model's world (`paper`, `dead-legs`, …): what the conditions mean.
+    pub world: String,
+    /// What each condition does in that world, in [`LiveCondition::ALL`]'s order.
+    pub condition_meanings: [String; 4],
     pub seed: u64,
     pub step_limit: usize,
     pub mode: ActionMode,
@@ -294,7 +298,7 @@ impl SimHandle {
         let mut session = Session::new(rec, live_specs(main, compare), config)?;
         session.keep_history(true);
         session.set_action_mode(setup.mode);
-        session.set_fatigue_triggers(setup.condition.fatigue_triggers());
+        session.set_world_damage(setup.condition.world_damage());
         session.set_start_state(setup.start.clone().map(Arc::new));
         session.set_attribution(setup.attribution)?;
         session.start_episode(setup.seed)?;
@@ -617,8 +621,7 @@ impl Sim {
     fn new_episode(&mut self) -> Result<(), LiveError> {
         let config = episode_config(self.session.config(), self.condition, self.step_limit);
         self.session.set_config(config);
-        self.session
-            .set_fatigue_triggers(self.condition.fatigue_triggers());
+        self.session.set_world_damage(self.condition.world_damage());
         self.session.start_episode(self.seed)?;
         self.over_since = None;
         Ok(())
@@ -868,6 +871,9 @@ impl Sim {
             condition: self.condition,
             seed: self.seed,
             step_limit: self.step_limit,
+            world: self.session.config().world.to_string(),
+            condition_meanings: LiveCondition::ALL
+                .map(|c| c.meaning(&self.session.config().damage)),
             mode: self.mode,
             compare: self.compare_on,
             compare_checkpoint: self.compare_dir.clone(),

@@ -1107,6 +1107,12 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
         "paused": s.paused,
         "speed": s.speed,
         "condition": s.condition.name(),
+        "world": s.world,
+        "condition_meanings": LiveCondition::ALL
+            .iter()
+            .zip(&s.condition_meanings)
+            .map(|(c, m)| (c.name().to_string(), Value::from(m.as_str())))
+            .collect::<serde_json::Map<String, Value>>(),
         "seed": s.seed,
         "step_limit": s.step_limit,
         "sampled": s.mode == ActionMode::Sampled,

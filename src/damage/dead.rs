@@ -90,6 +90,37 @@ pub struct DeadOnset {
 }
 
 impl DeadActuators {
+    /// What happens under `condition`, in words for the panel and the page: "2 legs die, each
+    /// from a step in 10–60".
+    pub fn describe(&self, condition: Condition) -> String {
+        let n = self.count.of(condition);
+        if n == 0 {
+            return "nothing dies".into();
+        }
+        let (one, many) = match self.unit {
+            DeadUnit::Joint => ("joint", "joints"),
+            DeadUnit::Leg => ("leg", "legs"),
+            DeadUnit::JointOrLeg => ("joint or leg", "joints or legs"),
+        };
+        let (what, verb, each) = if n == 1 {
+            (one, "dies", "")
+        } else {
+            (many, "die", "each ")
+        };
+        let fate = if self.max_scale > 0.0 {
+            format!(" (keeping U[0, {}] of its torque)", self.max_scale)
+        } else {
+            String::new()
+        };
+        let [first, last] = self.onset;
+        let when = if first == last {
+            format!("at step {first}")
+        } else {
+            format!("from a step in {first}–{last}")
+        };
+        format!("{n} {what} {verb}{fate}, {each}{when}")
+    }
+
     /// Why this distribution cannot be drawn from, if it cannot.
     pub fn check(&self) -> Result<(), String> {
         if !(self.max_scale.is_finite() && (0.0..=1.0).contains(&self.max_scale)) {
@@ -206,6 +237,31 @@ mod tests {
         assert_eq!(
             d.plan(Condition::Severe, 7, &LEGS),
             d.plan(Condition::Severe, 7, &LEGS)
+        );
+    }
+
+    #[test]
+    fn the_description_says_what_dies_and_when() {
+        let mut d = DeadActuators {
+            unit: DeadUnit::Leg,
+            onset: [10, 60],
+            ..DeadActuators::default()
+        };
+        assert_eq!(d.describe(Condition::Healthy), "nothing dies");
+        assert_eq!(
+            d.describe(Condition::Mild),
+            "1 leg dies, from a step in 10–60"
+        );
+        assert_eq!(
+            d.describe(Condition::Severe),
+            "2 legs die, each from a step in 10–60"
+        );
+        d.unit = DeadUnit::JointOrLeg;
+        d.max_scale = 0.2;
+        d.onset = [5, 5];
+        assert_eq!(
+            d.describe(Condition::Mild),
+            "1 joint or leg dies (keeping U[0, 0.2] of its torque), at step 5"
         );
     }
 

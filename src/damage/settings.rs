@@ -32,6 +32,33 @@ pub struct DamageConfig {
     pub dead: Option<DeadActuators>,
 }
 
+impl DamageConfig {
+    /// What `condition` does in this world, in words for the panel and the page (the paper's
+    /// mild: "a joint whose fatigue reaches 30 keeps 0.5× its torque").
+    pub fn condition_meaning(&self, condition: super::Condition) -> String {
+        let mut parts = Vec::new();
+        if self.fatigue {
+            let scale = condition.scale(&self.scales);
+            parts.push(if scale >= 1.0 {
+                "fatigue weakens no joint".to_string()
+            } else {
+                format!(
+                    "a joint whose fatigue reaches {} keeps {scale}× its torque",
+                    self.threshold
+                )
+            });
+        }
+        if let Some(dead) = &self.dead {
+            parts.push(dead.describe(condition));
+        }
+        if parts.is_empty() {
+            "no damage".into()
+        } else {
+            parts.join("; ")
+        }
+    }
+}
+
 fn is_true(b: &bool) -> bool {
     *b
 }

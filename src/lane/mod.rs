@@ -555,10 +555,12 @@ impl Lane {
         Ok(self.env.apply_override(actuator, change)?)
     }
 
-    /// Whether fatigue reaching τ triggers a joint (off in the live viewer's manual condition);
-    /// kept across resets.
-    pub fn set_fatigue_triggers(&mut self, on: bool) {
+    /// Whether the world damages joints by itself — fatigue reaching τ triggers a joint, and
+    /// in a world with dead actuators its deaths come — or only a hand does (the live viewer's
+    /// manual condition); kept across resets.
+    pub fn set_world_damage(&mut self, on: bool) {
         self.env.set_fatigue_triggers(on);
+        self.env.set_world_deaths(on);
     }
 
     /// Steps the episode on while `go_on` (asked before each step) says so, to its end at most,

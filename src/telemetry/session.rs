@@ -257,7 +257,8 @@ pub struct Session {
     config: GaitConfig,
     /// Settings changed since the lanes' envs were built: rebuilt at the next episode.
     config_changed: bool,
-    fatigue_triggers: bool,
+    /// Fatigue triggers and the world's deaths on (off: the live viewer's manual condition).
+    world_damage: bool,
     mode: ActionMode,
     global_step: u64,
     episodes_started: u64,
@@ -298,7 +299,7 @@ impl Session {
             lanes,
             config,
             config_changed: false,
-            fatigue_triggers: true,
+            world_damage: true,
             mode: ActionMode::Deterministic,
             global_step: 0,
             episodes_started: 0,
@@ -428,12 +429,7 @@ impl Session {
             let root = format!("{}_b{branch}", lane.base_root);
             let mut logger = lane.logger.branch(&root, lane.core.env());
             logger.set_time(self.global_step, episode);
-            let mut meta = episode_meta(
-                self.fatigue_triggers,
-                self.seed,
-                &lane.actor,
-                lane.core.env(),
-            );
+            let mut meta = episode_meta(self.world_damage, self.seed, &lane.actor, lane.core.env());
             meta.checkpoint = format!(
                 "{} (branch {branch}: rewound to step {step})",
                 meta.checkpoint
@@ -492,12 +488,7 @@ impl Session {
         lane.fork_of = Some(described.clone());
         let episode = self.episodes_started.saturating_sub(1);
         lane.logger.set_time(self.global_step, episode);
-        let mut meta = episode_meta(
-            self.fatigue_triggers,
-            self.seed,
-            &lane.actor,
-            lane.core.env(),
-        );
+        let mut meta = episode_meta(self.world_damage, self.seed, &lane.actor, lane.core.env());
         meta.checkpoint = format!("{} ({described})", meta.checkpoint);
         lane.logger.log_episode(&meta, lane.core.env(), None)?;
         // After the episode metadata, which starts a logger's trails afresh.
@@ -529,9 +520,10 @@ impl Session {
         self.config_changed = true;
     }
 
-    /// Whether fatigue triggers joints, from the next episode (off: only a person damages joints).
-    pub fn set_fatigue_triggers(&mut self, on: bool) {
-        self.fatigue_triggers = on;
+    /// Whether the world damages joints by itself (fatigue triggers, a world's deaths), from the
+    /// next episode (off: only a person damages joints).
+    pub fn set_world_damage(&mut self, on: bool) {
+        self.world_damage = on;
     }
 
     /// Replaces the models (e.g. another checkpoint picked in the panel); start an episode next.
@@ -603,7 +595,7 @@ impl Session {
         let episode = self.episodes_started;
         self.episodes_started += 1;
         for lane in &mut self.lanes {
-            lane.core.set_fatigue_triggers(self.fatigue_triggers);
+            lane.core.set_world_damage(self.world_damage);
             lane.core.reset(seed);
             lane.log.clear();
             if let Some(start) = &self.start {
@@ -611,7 +603,7 @@ impl Session {
             }
             lane.probe_before = None;
             lane.logger.set_time(self.global_step, episode);
-            let meta = episode_meta(self.fatigue_triggers, seed, &lane.actor, lane.core.env());
+            let meta = episode_meta(self.world_damage, seed, &lane.actor, lane.core.env());
             lane.logger.log_episode(&meta, lane.core.env(), None)?;
         }
         Ok(())
@@ -663,12 +655,7 @@ impl Session {
             }
             let out = &record.outcome;
             if out.done() {
-                let meta = episode_meta(
-                    self.fatigue_triggers,
-                    self.seed,
-                    &lane.actor,
-                    lane.core.env(),
-                );
+                let meta = episode_meta(self.world_damage, self.seed, &lane.actor, lane.core.env());
                 lane.logger.log_episode(&meta, lane.core.env(), Some(out))?;
                 ended.push(i);
             }
@@ -759,15 +746,17 @@ impl Session {
     }
 }
 
-fn episode_meta(fatigue_triggers: bool, seed: u64, actor: &Actor, env: &AntEnv) -> EpisodeMeta {
+fn episode_meta(world_damage: bool, seed: u64, actor: &Actor, env: &AntEnv) -> EpisodeMeta {
     let condition = env.condition();
     EpisodeMeta {
         checkpoint: actor.label(),
         encoder: actor.encoder(),
-        condition: if fatigue_triggers {
+        condition: if world_damage {
             condition.to_string()
         } else {
-            format!("manual (no fatigue triggers; fail now → {condition} scale)")
+            format!(
+                "manual (only hand-made damage: no fatigue triggers, no world deaths; fail now → {condition} scale)"
+            )
         },
         seed,
     }
