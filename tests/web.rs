@@ -392,6 +392,16 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             meaning,
             "world paper: manual = only what a hand does (fail now: 0.1× torque)"
         );
+        // Manual: fatigue accumulates but triggers nothing, and the heading says so.
+        assert_eq!(s["lanes"][0]["fatigue_triggers"], false);
+        let tau = client
+            .find(Locator::Id("tau"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        assert_eq!(tau, "fatigue triggers nothing here");
         let severe_hint = client
             .find(Locator::Css("#condition option:nth-child(3)"))
             .await

@@ -500,13 +500,17 @@ impl Panel {
             ui.label("no model loaded");
             return;
         };
-        ui.label(
-            RichText::new(format!(
+        // Fatigue still accumulates where it triggers nothing (a world of dead actuators,
+        // manual): then the bars are grey and the heading says so, not a threshold to fear.
+        let heading = if lane.fatigue_triggers {
+            format!(
                 "Joints of {} — fatigue, τ = {:.0}",
                 lane.label, lane.threshold
-            ))
-            .strong(),
-        );
+            )
+        } else {
+            format!("Joints of {} — fatigue triggers nothing here", lane.label)
+        };
+        ui.label(RichText::new(heading).strong());
         egui::Grid::new("joints")
             .num_columns(6)
             .spacing([6.0, 4.0])
@@ -518,7 +522,7 @@ impl Panel {
                         .label(&lane.joint_names[i])
                         .on_hover_text(&lane.joint_legs[i])
                         .id;
-                    fatigue_bar(ui, lane.fatigue[i], lane.threshold);
+                    fatigue_bar(ui, lane.fatigue[i], lane.threshold, lane.fatigue_triggers);
                     let (text, color) =
                         state_text(lane.scale[i], lane.states[i], lane.causes[i].as_deref());
                     ui.colored_label(color, text);
@@ -836,15 +840,17 @@ fn state_text(scale: f64, state: JointState, cause: Option<&str>) -> (String, Co
 }
 
 /// Fatigue as a bar over 0 … 1.5 τ, with the threshold marked: green, amber from 0.8 τ (the
-/// torque column beside it says what the joint has lost).
-fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64) {
+/// torque column beside it says what the joint has lost); grey where it triggers nothing.
+fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64, triggers: bool) {
     let size = egui::vec2(96.0, ui.spacing().interact_size.y * 0.8);
     let (rect, response) = ui.allocate_exact_size(size, egui::Sense::hover());
     let span = (threshold * BAR_SPAN).max(f64::EPSILON);
     let frac = (fatigue / span).clamp(0.0, 1.0) as f32;
     let painter = ui.painter();
     painter.rect_filled(rect, 2.0, ui.visuals().extreme_bg_color);
-    let fill = if fatigue < threshold * 0.8 {
+    let fill = if !triggers {
+        Color32::from_gray(120)
+    } else if fatigue < threshold * 0.8 {
         Color32::from_rgb(90, 160, 90)
     } else {
         Color32::from_rgb(230, 170, 40)
@@ -864,9 +870,11 @@ fn fatigue_bar(ui: &mut egui::Ui, fatigue: f64, threshold: f64) {
         egui::FontId::monospace(11.0),
         ui.visuals().strong_text_color(),
     );
-    response.on_hover_text(format!(
-        "fatigue {fatigue:.2}; the joint triggers at τ = {threshold:.1} (the mark)"
-    ));
+    response.on_hover_text(if triggers {
+        format!("fatigue {fatigue:.2}; the joint triggers at τ = {threshold:.1} (the mark)")
+    } else {
+        format!("fatigue {fatigue:.2}; it triggers nothing in this episode (τ = {threshold:.1})")
+    });
 }
 
 /// How the panel window opens.

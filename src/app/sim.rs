@@ -134,6 +134,9 @@ pub struct LaneView {
     pub joint_legs: [String; N_ACTUATORS],
     pub fatigue: [f64; N_ACTUATORS],
     pub threshold: f64,
+    /// Whether fatigue reaching the threshold triggers a joint this episode (not in a world
+    /// whose damage is dead actuators alone, nor in the manual condition).
+    pub fatigue_triggers: bool,
     pub states: [JointState; N_ACTUATORS],
     pub scale: [f64; N_ACTUATORS],
     /// P(joint damaged) from the probe on z, when the checkpoint has `probe.json`.
@@ -177,6 +180,7 @@ impl LaneView {
             joint_legs: std::array::from_fn(|i| env.leg_names()[env.leg_of_actuator()[i]].clone()),
             fatigue: *damage.fatigue(),
             threshold: damage.config().threshold,
+            fatigue_triggers: damage.fatigue_triggers(),
             states,
             scale: *damage.scale(),
             probe,
@@ -784,6 +788,15 @@ impl Sim {
         Ok(())
     }
 
+    /// The world the main model runs in: its checkpoint's, not the session's default (a
+    /// `dead-legs` checkpoint runs in `dead-legs` whatever the session started with).
+    fn main_world(&self) -> &GaitConfig {
+        self.session
+            .lanes()
+            .first()
+            .map_or(self.session.config(), |l| l.env().config())
+    }
+
     /// The main lane's hand-made overrides of this episode as a scenario named `name`.
     fn recorded_scenario(&self, name: &str) -> Option<serde_json::Value> {
         let env = self.session.lanes().first()?.env();
@@ -871,9 +884,8 @@ impl Sim {
             condition: self.condition,
             seed: self.seed,
             step_limit: self.step_limit,
-            world: self.session.config().world.to_string(),
-            condition_meanings: LiveCondition::ALL
-                .map(|c| c.meaning(&self.session.config().damage)),
+            world: self.main_world().world.to_string(),
+            condition_meanings: LiveCondition::ALL.map(|c| c.meaning(&self.main_world().damage)),
             mode: self.mode,
             compare: self.compare_on,
             compare_checkpoint: self.compare_dir.clone(),

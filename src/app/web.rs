@@ -1095,6 +1095,7 @@ pub fn snapshot_json(s: &Snapshot) -> Value {
                 "done": l.done,
                 "ending": l.ending,
                 "threshold": l.threshold,
+                "fatigue_triggers": l.fatigue_triggers,
                 "joints": joints,
                 "events": l.events,
                 "last_event": l.last_event,
