@@ -229,9 +229,17 @@ mod tests {
             "POST / HTTP/1.1\r\nHost: localhost\r\nX-Gaitscope-Guard: s3cret\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
         );
         assert!(post.starts_with("HTTP/1.1 405"), "{post}");
-        // Dropping it ends its thread and frees the port.
+        // Dropping it ends its thread, and tiny_http's accept thread then lets the port go
+        // (it wakes by connecting to itself: soon, not at once).
         drop(assets);
-        assert!(std::net::TcpListener::bind(addr).is_ok());
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        while std::net::TcpListener::bind(addr).is_err() {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "the port stayed taken"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
     }
 
     #[test]
