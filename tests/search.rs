@@ -332,3 +332,18 @@ fn a_search_with_pushes_writes_pushes_that_replay_and_stay_within_the_impulse() 
         );
     }
 }
+
+#[test]
+fn searched_pushes_name_the_bundled_ants_torso_and_legs() {
+    // The search space is built before any env, so it names its bodies itself: they must be the
+    // bundled model's torso and the four legs' upper bodies (the panel's push targets).
+    let env = gaitscope::env::AntEnv::new(gaitscope::GaitConfig::default(), 0).unwrap();
+    let (torso, legs) = gaitscope::search::space::PUSH_BODIES.split_first().unwrap();
+    assert_eq!(*torso, "torso");
+    assert!(env.body_names().contains(torso));
+    let mut searched: Vec<&str> = legs.to_vec();
+    let mut model: Vec<&str> = env.leg_names().iter().map(String::as_str).collect();
+    searched.sort_unstable();
+    model.sort_unstable();
+    assert_eq!(searched, model);
+}
