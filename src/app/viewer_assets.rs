@@ -12,7 +12,7 @@ use std::thread::JoinHandle;
 use re_web_viewer_server::WebViewerData;
 
 use super::guard::{GUARD_HEADER, is_loopback_host};
-use super::web::WebError;
+use super::web::{WebError, header};
 
 /// The running asset server; dropping it ends its thread.
 pub struct ViewerAssets {
@@ -165,12 +165,6 @@ fn asset<'a>(data: &'a WebViewerData, path: &str) -> Option<(&'static str, &'a [
         "/signed-out" => ("text/html", data.signed_out_html()),
         _ => return None,
     })
-}
-
-fn header(name: &str, value: &str) -> tiny_http::Header {
-    // Names are ours and values ASCII (media types, a length): this cannot fail.
-    tiny_http::Header::from_bytes(name.as_bytes(), value.as_bytes())
-        .unwrap_or_else(|_| unreachable!("ASCII header {name}"))
 }
 
 #[cfg(test)]

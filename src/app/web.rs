@@ -596,8 +596,8 @@ fn event_loop(
     }
 }
 
-fn header(name: &str, value: &str) -> tiny_http::Header {
-    // Both are ASCII literals of ours: this cannot fail.
+pub(super) fn header(name: &str, value: &str) -> tiny_http::Header {
+    // Both are ASCII of ours (literals, numbers): this cannot fail.
     tiny_http::Header::from_bytes(name.as_bytes(), value.as_bytes())
         .unwrap_or_else(|_| unreachable!("ASCII header {name}"))
 }
