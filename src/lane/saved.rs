@@ -236,11 +236,7 @@ impl StartState {
             // The label a person reads must say what the state holds (the saver writes it from
             // the damage below): a label edited to "x" or "healthy" over a severe state is refused.
             let d = &saved.env.damage;
-            let label = if d.fatigue_triggers {
-                d.condition.name()
-            } else {
-                "manual"
-            };
+            let label = condition_label(d);
             if let Some(given) = &saved.condition
                 && given != label
             {
@@ -317,6 +313,17 @@ impl StartState {
     }
 }
 
+/// The condition a state is labelled with, from its damage alone: the condition its fatigue
+/// rule runs under, or "manual" where fatigue triggers nothing. The saver writes it; the reader
+/// refuses a label that says otherwise.
+fn condition_label(damage: &crate::damage::DamageSave) -> &'static str {
+    if damage.fatigue_triggers {
+        damage.condition.name()
+    } else {
+        "manual"
+    }
+}
+
 impl Lane {
     /// This lane's state before its next step, as a file holds it: `actor` is who acts in it
     /// (a checkpoint is named in the file), `seed` the episode's.
@@ -332,11 +339,7 @@ impl Lane {
             .map(<[f32]>::to_vec)
             .collect();
         let key_name = format!("gaitscope-step-{}", env.step);
-        let condition = if env.damage.fatigue_triggers {
-            env.damage.condition.name().to_string()
-        } else {
-            "manual".to_string()
-        };
+        let condition = condition_label(&env.damage).to_string();
         SavedState {
             format: STATE_FORMAT.to_string(),
             checkpoint,
