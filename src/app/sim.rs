@@ -878,14 +878,15 @@ impl Sim {
 
     fn snapshot(&self) -> Snapshot {
         let lanes: Vec<LaneView> = self.session.lanes().iter().map(LaneView::of).collect();
+        let world = self.main_world();
         Snapshot {
             paused: self.paused,
             speed: self.speed,
             condition: self.condition,
             seed: self.seed,
             step_limit: self.step_limit,
-            world: self.main_world().world.to_string(),
-            condition_meanings: LiveCondition::ALL.map(|c| c.meaning(&self.main_world().damage)),
+            world: world.world.to_string(),
+            condition_meanings: LiveCondition::ALL.map(|c| c.meaning(&world.damage)),
             mode: self.mode,
             compare: self.compare_on,
             compare_checkpoint: self.compare_dir.clone(),

@@ -179,10 +179,12 @@ impl Front {
         let secret = format!("{:032x}", rand::random::<u128>());
         let mut guards = Vec::new();
         let mut backends = Vec::new();
-        for (what, port) in [
-            ("control page", options.port),
-            ("web viewer", options.viewer_port),
-            ("gRPC stream", options.grpc_port),
+        // Our control and viewer servers require the secret; Rerun's gRPC server takes none
+        // (HTTP/2 frames carry no header the relay could add).
+        for (what, port, stamped) in [
+            ("control page", options.port, true),
+            ("web viewer", options.viewer_port, true),
+            ("gRPC stream", options.grpc_port, false),
         ] {
             let addr = SocketAddr::new(options.bind, port);
             let bind_error = |e: std::io::Error| WebError::Bind {
@@ -193,10 +195,8 @@ impl Front {
             let listener = TcpListener::bind(addr).map_err(bind_error)?;
             let backend = free_loopback_port().map_err(bind_error)?;
             let to = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), backend);
-            // Our control and viewer servers require the secret; Rerun's gRPC server takes
-            // none (HTTP/2 frames carry no header the relay could add).
             let limits = GuardLimits {
-                secret: (what != "gRPC stream").then(|| secret.clone()),
+                secret: stamped.then(|| secret.clone()),
                 ..limits.clone()
             };
             guards.push(Guard::spawn(listener, to, limits, what).map_err(bind_error)?);
