@@ -195,6 +195,17 @@ async fn click(client: &Client, id: &str) {
         .unwrap();
 }
 
+/// The text of the page's element `id`.
+async fn text_of(client: &Client, id: &str) -> String {
+    client
+        .find(Locator::Id(id))
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap()
+}
+
 /// Types `count` into the page's step field and presses Step.
 async fn step_by(client: &Client, count: u32) {
     let field = client.find(Locator::Id("step-count")).await.unwrap();
@@ -365,13 +376,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         let s = state(&client).await;
         assert_eq!(s["paused"], true);
         // The joint table names the model it shows.
-        let heading = client
-            .find(Locator::Id("joints-model"))
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+        let heading = text_of(&client, "joints-model").await;
         assert_eq!(heading, "encoder-lstm");
         assert_eq!(lane_step(&s), 0);
         // The page says what the condition means in the model's world (the bundled model's is
@@ -381,26 +386,14 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             s["condition_meanings"]["mild"],
             "a joint whose fatigue reaches 30 keeps 0.5× its torque"
         );
-        let meaning = client
-            .find(Locator::Id("condition-meaning"))
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+        let meaning = text_of(&client, "condition-meaning").await;
         assert_eq!(
             meaning,
             "world paper: manual = only what a hand does (fail now: 0.1× torque)"
         );
         // Manual: fatigue accumulates but triggers nothing, and the heading says so.
         assert_eq!(s["lanes"][0]["fatigue_triggers"], false);
-        let tau = client
-            .find(Locator::Id("tau"))
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+        let tau = text_of(&client, "tau").await;
         assert_eq!(tau, "fatigue triggers nothing here");
         let severe_hint = client
             .find(Locator::Css("#condition option:nth-child(3)"))
@@ -414,13 +407,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             Some("a joint whose fatigue reaches 30 keeps 0.1× its torque")
         );
         // The page says how the web viewer gets the stream (gaitscope::telemetry::WEB_STREAM_BATCH).
-        let note = client
-            .find(Locator::Id("viewer-note"))
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+        let note = text_of(&client, "viewer-note").await;
         assert!(note.contains("500 ms batches"), "{note}");
         assert_eq!(s["session"]["viewer_batch_ms"], 500);
 
@@ -445,13 +432,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         // The page's own readout of the click (its next event may trail our /state read).
         let deadline = Instant::now() + WAIT;
         let latency = loop {
-            let text = client
-                .find(Locator::Id("latency"))
-                .await
-                .unwrap()
-                .text()
-                .await
-                .unwrap();
+            let text = text_of(&client, "latency").await;
             if text.ends_with("(step 5)") {
                 break text;
             }
@@ -461,13 +442,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
         eprintln!("click → applied, seen by the page: {latency}");
         // The server's timing of it (its event may come one period after the applied state).
         let last = loop {
-            let text = client
-                .find(Locator::Id("last-command"))
-                .await
-                .unwrap()
-                .text()
-                .await
-                .unwrap();
+            let text = text_of(&client, "last-command").await;
             if text.contains("taken by") || Instant::now() > deadline {
                 break text;
             }
@@ -512,13 +487,7 @@ fn the_control_page_drives_the_sim_and_the_web_viewer_renders() {
             let reply = send_raw(&client, body).await;
             let error = reply["error"].as_str().unwrap_or_default();
             assert!(error.contains(reason), "{body}: {reply}");
-            let shown = client
-                .find(Locator::Id("error"))
-                .await
-                .unwrap()
-                .text()
-                .await
-                .unwrap();
+            let shown = text_of(&client, "error").await;
             assert!(shown.contains(reason), "{shown}");
         }
         let s = state(&client).await;
@@ -828,13 +797,7 @@ fn docs_pictures_and_latency_of_a_running_session() {
                 .await
                 .unwrap();
             let text = loop {
-                let t = client
-                    .find(Locator::Id("latency"))
-                    .await
-                    .unwrap()
-                    .text()
-                    .await
-                    .unwrap();
+                let t = text_of(&client, "latency").await;
                 if t != "–" && !latencies.iter().any(|(_, l)| *l == t) {
                     break t;
                 }
@@ -1446,13 +1409,7 @@ fn the_page_steps_through_a_search_folders_failures() {
             s["scenario"],
             format!("search-{}", first["name"].as_str().unwrap())
         );
-        let shown = client
-            .find(Locator::Id("finding"))
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+        let shown = text_of(&client, "finding").await;
         assert!(shown.contains(&format!("seed {seed}")), "{shown}");
         // Run it out, exactly as many steps as the search's held-out run took (one more would
         // start the next episode): it ends there, and fails, as it did in the search.
