@@ -27,10 +27,14 @@ pub const PAPER_WORLD: &str = "paper";
 
 /// The shipped worlds (`--world NAME`; `worlds/NAME.json`, docs/world.md): a world is a named
 /// config — env settings and a damage distribution — recorded in every checkpoint trained in it.
-pub const WORLDS: [(&str, &str); 3] = [
+pub const WORLDS: [(&str, &str); 4] = [
     (PAPER_WORLD, include_str!("../worlds/paper.json")),
     ("dead-joints", include_str!("../worlds/dead-joints.json")),
     ("dead-legs", include_str!("../worlds/dead-legs.json")),
+    (
+        "dead-legs-short",
+        include_str!("../worlds/dead-legs-short.json"),
+    ),
 ];
 
 /// Everything that defines the damaged-Ant task.
@@ -91,6 +95,10 @@ pub struct EnvConfig {
     pub success_bonus: f64,
     /// Truncation limit: 1000 for training, 500 for evaluation.
     pub max_episode_steps: usize,
+    /// Also end the episode (unhealthy) once the torso turns upside down. Off in Ant-v4, where a
+    /// flipped Ant stays inside the height band and flails until the step limit.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub terminate_upside_down: bool,
 }
 
 impl Default for EnvConfig {
@@ -108,6 +116,7 @@ impl Default for EnvConfig {
             progress_weight: 50.0,
             success_bonus: 200.0,
             max_episode_steps: 1000,
+            terminate_upside_down: false,
         }
     }
 }
@@ -411,6 +420,14 @@ mod tests {
         let legs = GaitConfig::world("dead-legs").unwrap().damage.dead.unwrap();
         assert_eq!(legs.unit, crate::damage::DeadUnit::Leg);
         assert_eq!(legs.onset, [10, 60]);
+        // dead-legs-short: the same deaths, a 400-step budget, and only a fall ends an episode
+        // early — a flip or the torso sinking — not a leap (no ceiling worth the name).
+        let short = GaitConfig::world("dead-legs-short").unwrap();
+        assert_eq!(short.damage.dead, Some(legs));
+        assert_eq!(short.env.max_episode_steps, 400);
+        assert!(short.env.terminate_upside_down);
+        assert_eq!(short.env.healthy_z_range, [0.2, 10.0]);
+        assert!(!GaitConfig::default().env.terminate_upside_down);
         // The paper world writes no name (its checkpoints read as before); others do.
         assert!(
             !serde_json::to_string(&GaitConfig::default())

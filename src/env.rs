@@ -152,13 +152,17 @@ pub enum Ending {
     Timeout,
     /// The step limit, the torso upside down (its up axis pointing below the horizon).
     TimeoutUpsideDown,
+    /// The torso turned upside down, in a world that ends the episode there
+    /// (`env.terminate_upside_down`).
+    Flipped,
 }
 
 impl Ending {
-    pub const ALL: [Ending; 6] = [
+    pub const ALL: [Ending; 7] = [
         Ending::Success,
         Ending::Leapt,
         Ending::Collapsed,
+        Ending::Flipped,
         Ending::Unstable,
         Ending::Timeout,
         Ending::TimeoutUpsideDown,
@@ -173,6 +177,7 @@ impl Ending {
             Ending::Unstable => "unstable simulation",
             Ending::Timeout => "timeout",
             Ending::TimeoutUpsideDown => "timeout upside down",
+            Ending::Flipped => "flipped",
         }
     }
 
@@ -185,12 +190,16 @@ impl Ending {
             Ending::Unstable => "MuJoCo reported a diverging simulation",
             Ending::Timeout => "the step limit, upright",
             Ending::TimeoutUpsideDown => "the step limit, the torso upside down",
+            Ending::Flipped => "the torso turned upside down (this world ends the episode there)",
         }
     }
 
     /// Whether the episode ended early without reaching the goal (a termination, not a timeout).
     pub fn is_fall(self) -> bool {
-        matches!(self, Ending::Leapt | Ending::Collapsed | Ending::Unstable)
+        matches!(
+            self,
+            Ending::Leapt | Ending::Collapsed | Ending::Flipped | Ending::Unstable
+        )
     }
 }
 
@@ -689,10 +698,13 @@ impl AntEnv {
             Some(Ending::Unstable)
         } else if terminated {
             let z = self.physics.qpos()[2];
-            Some(if z > env.healthy_z_range[1] {
+            let [lo, hi] = env.healthy_z_range;
+            Some(if z > hi {
                 Ending::Leapt
-            } else {
+            } else if z < lo {
                 Ending::Collapsed
+            } else {
+                Ending::Flipped
             })
         } else if truncated {
             Some(if self.torso_upside_down() {
@@ -943,7 +955,8 @@ impl AntEnv {
         (goal[0] - xy[0]).hypot(goal[1] - xy[1])
     }
 
-    /// Healthy: torso z within the healthy range and the whole state (qpos, qvel) finite.
+    /// Healthy: torso z within the healthy range and the whole state (qpos, qvel) finite — and,
+    /// in a world with `env.terminate_upside_down`, the torso not upside down.
     pub fn is_healthy(&self) -> bool {
         let qpos = self.physics.qpos();
         let [lo, hi] = self.config.env.healthy_z_range;
@@ -951,7 +964,9 @@ impl AntEnv {
             .iter()
             .chain(self.physics.qvel())
             .all(|v| v.is_finite());
-        finite && (lo..=hi).contains(&qpos[2])
+        finite
+            && (lo..=hi).contains(&qpos[2])
+            && !(self.config.env.terminate_upside_down && self.torso_upside_down())
     }
 
     /// ‖cfrc_ext‖₂ (full 6-vector) of the body each actuator drives.
@@ -1277,6 +1292,37 @@ mod tests {
         let out = env.step(&[0.0; N_ACTUATORS]).unwrap();
         assert_eq!(out.ending, Some(Ending::TimeoutUpsideDown));
         assert_eq!(out.ending(), Some("timeout upside down"));
+    }
+
+    /// A world with `env.terminate_upside_down` ends the episode on the step the torso is upside
+    /// down (unhealthy: no healthy bonus is earned after it); Ant-v4's rule (the default) lets
+    /// the same state go on, and an upright torso goes on in both.
+    #[test]
+    fn turning_upside_down_ends_the_episode_only_where_the_world_says_so() {
+        let flipped_step = |terminate: bool, quaternion: [f64; 4]| {
+            let mut config = GaitConfig::default();
+            config.env.terminate_upside_down = terminate;
+            let mut env = AntEnv::new(config, 0).unwrap();
+            env.reset_with_seed(1);
+            let mut qpos = env.qpos().to_vec();
+            qpos[2] = 0.5;
+            qpos[3..7].copy_from_slice(&quaternion);
+            let qvel = vec![0.0; env.qvel().len()];
+            env.reset_to_state(&qpos, &qvel, crate::damage::Condition::Healthy)
+                .unwrap();
+            env.step(&[0.0; N_ACTUATORS]).unwrap()
+        };
+        // Half a turn about x: up axis (0, 0, −1).
+        let out = flipped_step(true, [0.0, 1.0, 0.0, 0.0]);
+        assert!(out.terminated && !out.healthy && !out.success);
+        assert_eq!(out.ending, Some(Ending::Flipped));
+        assert!(Ending::Flipped.is_fall());
+        let out = flipped_step(false, [0.0, 1.0, 0.0, 0.0]);
+        assert!(!out.terminated && out.healthy && out.ending.is_none());
+        // Tilted 60° about y (up axis z = cos 60° = 0.5 > 0): still upright, goes on.
+        let (s, c) = (30f64.to_radians().sin(), 30f64.to_radians().cos());
+        let out = flipped_step(true, [c, 0.0, s, 0.0]);
+        assert!(!out.terminated && out.ending.is_none());
     }
 
     /// Foot contacts against MuJoCo's contact list read here by geom name, on stepped states

@@ -24,7 +24,9 @@ use gaitscope::GaitConfig;
 #[derive(Args)]
 pub(crate) struct EnvArgs {
     /// A shipped world (paper, the default; dead-joints: actuators die over a longer walk;
-    /// dead-legs: whole legs die early in it; docs/world.md) or a world file. A checkpoint runs in its own world whatever this says.
+    /// dead-legs: whole legs die early in it; dead-legs-short: the same in 400 steps, where only
+    /// a fall — a flip, not a leap — ends an episode early; docs/world.md) or a world file. A checkpoint runs in its own world
+    /// whatever this says.
     #[arg(long, value_name = "NAME|FILE", conflicts_with = "config")]
     pub(crate) world: Option<String>,
     /// JSON config (any subset of the fields; the rest keep their defaults).

@@ -90,6 +90,8 @@ pub struct FailureCounts {
     pub early_unrecorded: usize,
     /// Timeouts with the torso's up axis below the horizon (a flipped Ant stays in the band).
     pub timed_out_upside_down: usize,
+    /// Early endings for turning upside down (worlds with `env.terminate_upside_down`).
+    pub flipped: usize,
 }
 
 impl FailureCounts {
@@ -111,6 +113,7 @@ impl FailureCounts {
             match e.ending {
                 Some(Ending::Leapt) => c.leapt += 1,
                 Some(Ending::Collapsed) => c.collapsed += 1,
+                Some(Ending::Flipped) => c.flipped += 1,
                 Some(Ending::Unstable) => c.unstable += 1,
                 Some(Ending::TimeoutUpsideDown) => c.timed_out_upside_down += 1,
                 None if early => c.early_unrecorded += 1,
@@ -129,6 +132,7 @@ impl FailureCounts {
         let kinds: Vec<String> = [
             ("leapt above the band", self.leapt),
             ("collapsed below it", self.collapsed),
+            ("flipped", self.flipped),
             ("unstable", self.unstable),
             ("kind not recorded", self.early_unrecorded),
         ]
@@ -768,6 +772,12 @@ mod tests {
         eps[2].ending = Some(crate::env::Ending::Collapsed);
         eps[3].ending = None;
         eps[8].ending = Some(crate::env::Ending::TimeoutUpsideDown);
+        // A flip, in a world that ends episodes there, is an early ending of its own kind.
+        let last_leap = eps
+            .iter()
+            .rposition(|e| e.ending == Some(crate::env::Ending::Leapt))
+            .unwrap();
+        eps[last_leap].ending = Some(crate::env::Ending::Flipped);
         let c = FailureCounts::of(&eps);
         assert_eq!(
             (
@@ -781,14 +791,15 @@ mod tests {
             (
                 c.leapt,
                 c.collapsed,
+                c.flipped,
                 c.early_unrecorded,
                 c.timed_out_upside_down
             ),
-            (4, 1, 1, 1)
+            (3, 1, 1, 1, 1)
         );
         assert_eq!(
             c.early_kinds(),
-            "leapt above the band 4, collapsed below it 1, kind not recorded 1"
+            "leapt above the band 3, collapsed below it 1, flipped 1, kind not recorded 1"
         );
         assert_eq!(c.total(), eps.len());
     }
