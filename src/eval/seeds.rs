@@ -488,7 +488,8 @@ impl AcrossSeeds {
             )
         };
         let mut s = "\n**Failure modes** (episodes summed over seeds; an early ending — the torso leaving \
-              the height band, above or below, or an unstable simulation — counts as after damage \
+              the height band, above or below, a flip in a world that ends episodes there, or an \
+              unstable simulation — counts as after damage \
               once a step was taken with a joint triggered, dead or weakened by a scenario; a \
               timeout upside down is one with the torso's up axis below the horizon) and **success \
               among the episodes that reached damage**, the only ones where adapting to damage can \
