@@ -5,7 +5,7 @@
 //! `FileTooLarge` past the bound), so each reader's own error type keeps them as its source.
 
 use std::io::{Error, ErrorKind, Read};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 fn not_a_file() -> Error {
     Error::new(
@@ -94,6 +94,44 @@ pub fn read_text_capped(path: &Path, max: u64) -> std::io::Result<String> {
 /// Makes a FIFO at `path`, for tests. By the system call, not by running `mkfifo`: a child
 /// process forked beside a test holds copies of its open files (and their locks) until it execs,
 /// which made a run-folder lock test fail now and then.
+/// A fresh folder only this user may enter (mode 0700, under the temp dir), removed with
+/// everything in it when dropped: `live --web` keeps the Unix sockets of the servers behind its
+/// guards in one, so no other user's process can reach them.
+pub struct PrivateDir {
+    path: PathBuf,
+}
+
+impl PrivateDir {
+    /// `<temp dir>/<prefix>-<pid>-<64 random bits>`, created new (an existing entry of that name
+    /// is an error: nobody else's folder is ever used).
+    pub fn create(prefix: &str) -> std::io::Result<Self> {
+        use std::os::unix::fs::DirBuilderExt;
+        let name = format!(
+            "{prefix}-{}-{:016x}",
+            std::process::id(),
+            rand::random::<u64>()
+        );
+        let path = std::env::temp_dir().join(name);
+        std::fs::DirBuilder::new().mode(0o700).create(&path)?;
+        Ok(Self { path })
+    }
+
+    /// The entry `name` in it (`control.sock`, …).
+    pub fn join(&self, name: &str) -> PathBuf {
+        self.path.join(name)
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl Drop for PrivateDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.path);
+    }
+}
+
 #[cfg(test)]
 pub(crate) fn mkfifo(path: &Path) {
     use std::os::unix::ffi::OsStrExt;
@@ -106,6 +144,19 @@ pub(crate) fn mkfifo(path: &Path) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_private_dir_is_new_mode_0700_and_gone_when_dropped() {
+        use std::os::unix::fs::MetadataExt;
+        let a = PrivateDir::create("gaitscope-test").unwrap();
+        let b = PrivateDir::create("gaitscope-test").unwrap();
+        assert_ne!(a.path(), b.path());
+        assert_eq!(std::fs::metadata(a.path()).unwrap().mode() & 0o777, 0o700);
+        std::fs::write(a.join("x.sock"), b"").unwrap();
+        let path = a.path().to_path_buf();
+        drop(a);
+        assert!(!path.exists());
+    }
 
     #[test]
     fn only_regular_files_of_bounded_size_are_read() {

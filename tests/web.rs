@@ -7,7 +7,7 @@ use fantoccini::{Client, ClientBuilder, Locator};
 use re_chunk::Chunk;
 use serde_json::{Value, json};
 use std::net::TcpListener;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -84,6 +84,34 @@ fn listening_sockets(pid: u32) -> Vec<(std::net::IpAddr, u16)> {
         }
     }
     out
+}
+
+/// The paths of the Unix sockets `pid` listens on (`/proc/net/unix`: flag `__SO_ACCEPTCON`).
+fn listening_unix_sockets(pid: u32) -> Vec<PathBuf> {
+    let Ok(fds) = std::fs::read_dir(format!("/proc/{pid}/fd")) else {
+        return Vec::new();
+    };
+    let inodes: Vec<String> = fds
+        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+        .filter_map(|l| {
+            let l = l.to_string_lossy().into_owned();
+            Some(l.strip_prefix("socket:[")?.strip_suffix(']')?.to_string())
+        })
+        .collect();
+    let text = std::fs::read_to_string("/proc/net/unix").unwrap_or_default();
+    text.lines()
+        .skip(1)
+        .filter_map(|line| {
+            // Num RefCount Protocol Flags Type St Inode Path
+            let f: Vec<&str> = line.split_whitespace().collect();
+            let listening = u32::from_str_radix(f.get(3)?, 16).ok()? & 0x0001_0000 != 0;
+            let inode = *f.get(6)?;
+            if !listening || !inodes.iter().any(|i| i == inode) {
+                return None;
+            }
+            Some(PathBuf::from(f.get(7)?))
+        })
+        .collect()
 }
 
 /// Processes whose parent chain reaches `ancestor`, running `exe`.
@@ -1029,44 +1057,48 @@ fn every_port_checks_host_and_bounds_connections() {
     );
     assert!(state.starts_with("HTTP/1.1 200"), "{state}");
     drop(flood);
-    // The servers behind the guards listen on loopback ports any local process can find (`ss`);
-    // the control server answers only what its guard stamped.
+    // The servers behind the guards listen on no TCP port: the process listens on the three
+    // public ports only (the backends used to be loopback ports any local process could find
+    // with `ss` and reach around the guard) ...
     let public = [port, viewer_port, grpc_port];
-    let backends: Vec<u16> = listening_sockets(live.0.id())
+    let mut tcp: Vec<u16> = listening_sockets(live.0.id())
         .into_iter()
-        .filter(|(ip, p)| ip.is_loopback() && !public.contains(p))
         .map(|(_, p)| p)
         .collect();
-    assert!(backends.len() >= 3, "{backends:?}");
-    for p in backends {
-        let direct = raw_http(
-            p,
-            &format!("GET /state HTTP/1.1\r\nHost: 127.0.0.1:{p}\r\nConnection: close\r\n\r\n"),
-        );
-        assert!(
-            !direct.contains("global_step"),
-            "port {p} served the sim's state around the guard: {}",
-            &direct[..direct.len().min(300)]
-        );
-        if direct.contains("control page") {
-            assert!(direct.starts_with("HTTP/1.1 403"), "{direct}");
-        }
-        // Nor the web viewer's files: its server too answers only what its guard stamped.
-        let viewer = raw_http(
-            p,
-            &format!(
-                "GET /index.html HTTP/1.1\r\nHost: 127.0.0.1:{p}\r\nConnection: close\r\n\r\n"
-            ),
-        );
-        assert!(
-            !viewer
-                .to_ascii_lowercase()
-                .contains("content-type: text/html"),
-            "port {p} served the web viewer around the guard: {}",
-            &viewer[..viewer.len().min(300)]
-        );
-        if viewer.contains("web viewer") {
-            assert!(viewer.starts_with("HTTP/1.1 403"), "{viewer}");
+    tcp.sort_unstable();
+    let mut expected = public.to_vec();
+    expected.sort_unstable();
+    assert_eq!(tcp, expected, "TCP ports beyond the public three");
+    // ... and on three Unix sockets in one folder of its own that no other user may enter.
+    let sockets = listening_unix_sockets(live.0.id());
+    assert_eq!(sockets.len(), 3, "{sockets:?}");
+    let folder = sockets[0].parent().unwrap().to_path_buf();
+    assert!(sockets.iter().all(|s| s.parent() == Some(folder.as_path())));
+    use std::os::unix::fs::MetadataExt;
+    let meta = std::fs::metadata(&folder).unwrap();
+    assert_eq!(meta.mode() & 0o777, 0o700, "{folder:?}");
+    // Even this user's processes, reaching a socket without the guard, get neither the sim's
+    // state nor the viewer's files: those servers answer only what their guard stamped.
+    for socket in &sockets {
+        for path in ["/state", "/index.html"] {
+            let mut s = std::os::unix::net::UnixStream::connect(socket).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            use std::io::{Read, Write};
+            let _ = s.write_all(
+                format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+                    .as_bytes(),
+            );
+            let mut out = Vec::new();
+            let _ = s.read_to_end(&mut out);
+            let direct = String::from_utf8_lossy(&out);
+            assert!(
+                !direct.contains("global_step")
+                    && !direct
+                        .to_ascii_lowercase()
+                        .contains("content-type: text/html"),
+                "{socket:?} served {path} around the guard: {}",
+                &direct[..direct.len().min(300)]
+            );
         }
     }
     // Through its public port the viewer is served whole.
@@ -1473,4 +1505,54 @@ fn live_save_on_a_full_disk_leaves_nothing_under_the_name() {
     assert!(!stderr.contains("session saved to"), "{stderr}");
     assert!(!save.exists(), "a cut-off file took the name");
     assert!(dir.path().join("session.rrd.partial").exists());
+}
+
+/// A native viewer's way in: HTTP/2 gRPC (`ReadMessages`) on the public gRPC port, relayed by
+/// its guard to the message proxy on its Unix socket, gets the session's recording — store info
+/// (the recording's and its blueprint's) first, then data (what `rerun --connect
+/// rerun+http://127.0.0.1:PORT/proxy` reads).
+#[test]
+fn a_native_grpc_client_reads_the_stream_through_the_guard() {
+    use re_protos::log_msg::v1alpha1::log_msg::Msg;
+    use re_protos::sdk_comms::v1alpha1::ReadMessagesRequest;
+    use re_protos::sdk_comms::v1alpha1::message_proxy_service_client::MessageProxyServiceClient;
+    let (_live, [port, _, grpc_port]) =
+        live_web(&[std::ffi::OsStr::new("--paused")], Stdio::null());
+    pause_when_up(port);
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let kinds = rt.block_on(async {
+        let channel =
+            tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{grpc_port}"))
+                .unwrap()
+                .connect()
+                .await
+                .expect("an HTTP/2 connection through the guard");
+        let mut client =
+            MessageProxyServiceClient::new(channel).max_decoding_message_size(usize::MAX);
+        let mut stream = client
+            .read_messages(ReadMessagesRequest {})
+            .await
+            .expect("ReadMessages through the guard")
+            .into_inner();
+        let mut kinds = Vec::new();
+        while !kinds.contains(&"data") {
+            let next = tokio::time::timeout(WAIT, stream.message()).await;
+            let Ok(Ok(Some(response))) = next else {
+                panic!("the stream ended or stalled after {kinds:?}: {next:?}");
+            };
+            let kind = match response.log_msg.and_then(|m| m.msg) {
+                Some(Msg::SetStoreInfo(_)) => "store info",
+                Some(Msg::ArrowMsg(_)) => "data",
+                Some(Msg::BlueprintActivationCommand(_)) => "blueprint activation",
+                None => "none",
+            };
+            kinds.push(kind);
+        }
+        kinds
+    });
+    assert_eq!(kinds[0], "store info", "{kinds:?}");
+    assert!(kinds.contains(&"data"), "{kinds:?}");
 }

@@ -2,7 +2,8 @@
 //! times out slow request headers, bounds their size and — on loopback — answers only requests
 //! that name a loopback host (no DNS rebinding), before a byte reaches the server behind it
 //! (our control page, Rerun's web viewer, Rerun's gRPC stream; none of which does all of this
-//! itself). Each server listens on an ephemeral loopback port; the guard owns the public one.
+//! itself). Each server listens on a Unix socket in the session's private folder (mode 0700), so
+//! no other user's process reaches it around the guard; the guard owns the public port.
 //!
 //! Every HTTP/1 request on a connection is judged, not only the first: the guard reads each
 //! request's head (bounded, timed from its first byte), checks it, relays it and exactly its
@@ -16,6 +17,8 @@
 
 use std::io::{Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -38,7 +41,7 @@ pub struct GuardLimits {
     pub loopback_hosts_only: bool,
     /// A per-session secret the guard adds to every HTTP/1 request it relays, as the header
     /// [`GUARD_HEADER`] (after dropping any the client sent), so the server behind it can refuse
-    /// whatever reached its loopback port some other way.
+    /// whatever reached its socket some other way.
     pub secret: Option<String>,
 }
 
@@ -73,10 +76,10 @@ pub struct Guard {
 }
 
 impl Guard {
-    /// Relays connections accepted on `listener` to `backend` under `limits`.
+    /// Relays connections accepted on `listener` to the Unix socket `backend` under `limits`.
     pub fn spawn(
         listener: TcpListener,
-        backend: SocketAddr,
+        backend: PathBuf,
         limits: GuardLimits,
         name: &str,
     ) -> std::io::Result<Self> {
@@ -167,7 +170,7 @@ impl Drop for Slot {
 
 fn accept_loop(
     listener: TcpListener,
-    backend: SocketAddr,
+    backend: PathBuf,
     limits: GuardLimits,
     stop: Arc<AtomicBool>,
     open: Arc<AtomicUsize>,
@@ -215,12 +218,12 @@ fn accept_loop(
             registry: registry.clone(),
             id: next_id,
         };
-        let limits = limits.clone();
+        let (limits, backend) = (limits.clone(), backend.clone());
         let spawned = std::thread::Builder::new()
             .name("gaitscope-guard-conn".into())
             .spawn(move || {
                 let _slot = slot;
-                relay(client, backend, &limits, &activity);
+                relay(client, &backend, &limits, &activity);
             });
         // A thread that cannot start drops its closure, and with it the slot and the client.
         drop(spawned);
@@ -450,18 +453,35 @@ fn read_head(
     }
 }
 
+/// A stream socket the relay reads under a timeout: the client's TCP one, the server's Unix one.
+trait Socket: Read + Write {
+    fn read_timeout(&self, timeout: Option<Duration>);
+}
+
+impl Socket for TcpStream {
+    fn read_timeout(&self, timeout: Option<Duration>) {
+        let _ = self.set_read_timeout(timeout);
+    }
+}
+
+impl Socket for UnixStream {
+    fn read_timeout(&self, timeout: Option<Duration>) {
+        let _ = self.set_read_timeout(timeout);
+    }
+}
+
 /// Copies `from` to `to` until either closes, marking activity; `limit` bytes at most (then
 /// returns true: the count was reached), or to the end (`None`).
 fn pump(
-    from: &mut TcpStream,
-    to: &mut TcpStream,
+    from: &mut impl Socket,
+    to: &mut impl Write,
     limit: Option<u64>,
     activity: &Activity,
     idle: Duration,
 ) -> bool {
     let mut chunk = [0u8; 16 * 1024];
     let mut left = limit.unwrap_or(u64::MAX);
-    let _ = from.set_read_timeout(limit.map(|_| idle));
+    from.read_timeout(limit.map(|_| idle));
     while left > 0 {
         let want = chunk.len().min(usize::try_from(left).unwrap_or(usize::MAX));
         match from.read(&mut chunk[..want]) {
@@ -478,7 +498,7 @@ fn pump(
     true
 }
 
-fn relay(mut client: TcpStream, backend: SocketAddr, limits: &GuardLimits, activity: &Activity) {
+fn relay(mut client: TcpStream, backend: &Path, limits: &GuardLimits, activity: &Activity) {
     let mut buf = Vec::with_capacity(1024);
     // The first request's head must arrive within the header timeout of the connection.
     let end = match read_head(
@@ -504,14 +524,13 @@ fn relay(mut client: TcpStream, backend: SocketAddr, limits: &GuardLimits, activ
         Verdict::Http2 => None,
         Verdict::Pass { body } => Some(body),
     };
-    let Ok(mut server) = TcpStream::connect_timeout(&backend, Duration::from_secs(2)) else {
+    let Ok(mut server) = UnixStream::connect(backend) else {
         return refuse(
             client,
             "502 Bad Gateway",
             "the server behind this port is not up",
         );
     };
-    let _ = server.set_nodelay(true);
     let _ = client.set_nodelay(true);
     activity.set_phase(Phase::Relaying);
     let (Ok(mut server_read), Ok(mut client_write)) = (server.try_clone(), client.try_clone())
@@ -560,7 +579,7 @@ fn relay(mut client: TcpStream, backend: SocketAddr, limits: &GuardLimits, activ
 /// the refusal that ended it, if one did.
 fn forward_requests(
     client: &mut TcpStream,
-    server: &mut TcpStream,
+    server: &mut UnixStream,
     mut buf: Vec<u8>,
     mut end: usize,
     mut body: Option<u64>,
@@ -602,11 +621,6 @@ fn forward_requests(
         };
         activity.set_phase(Phase::Relaying);
     }
-}
-
-/// A free port on loopback for a server behind a guard (bound, read, released).
-pub fn free_loopback_port() -> std::io::Result<u16> {
-    Ok(TcpListener::bind(("127.0.0.1", 0))?.local_addr()?.port())
 }
 
 #[cfg(test)]
@@ -660,9 +674,10 @@ mod tests {
 
     /// A backend that keeps connections alive and answers each request with "ok N", N the
     /// body's length as it arrived.
-    fn echo_backend() -> SocketAddr {
-        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
-        let addr = listener.local_addr().unwrap();
+    fn echo_backend() -> (crate::files::PrivateDir, PathBuf) {
+        let dir = crate::files::PrivateDir::create("gaitscope-test").unwrap();
+        let path = dir.join("echo.sock");
+        let listener = std::os::unix::net::UnixListener::bind(&path).unwrap();
         std::thread::spawn(move || {
             for mut conn in listener.incoming().flatten() {
                 std::thread::spawn(move || {
@@ -705,7 +720,7 @@ mod tests {
                 });
             }
         });
-        addr
+        (dir, path)
     }
 
     /// One response from a kept-alive connection: its status line and body.
@@ -751,7 +766,8 @@ mod tests {
     #[test]
     fn the_guard_relays_refuses_and_times_out() {
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
-        let guard = Guard::spawn(listener, echo_backend(), limits(), "test").unwrap();
+        let (_dir, backend) = echo_backend();
+        let guard = Guard::spawn(listener, backend, limits(), "test").unwrap();
         let addr = guard.addr();
         let ok = get(addr, b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n");
         assert!(
@@ -825,7 +841,8 @@ mod tests {
     #[test]
     fn every_request_on_a_kept_alive_connection_is_judged() {
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
-        let guard = Guard::spawn(listener, echo_backend(), limits(), "test").unwrap();
+        let (_dir, backend) = echo_backend();
+        let guard = Guard::spawn(listener, backend, limits(), "test").unwrap();
         let mut s = TcpStream::connect(guard.addr()).unwrap();
         // Two requests in one write (the second's head arrives with the first), then a POST
         // whose body comes in two pieces: each reaches the server whole, and only once.
@@ -864,7 +881,7 @@ mod tests {
     /// that sent the first 14 bytes of HTTP/2's preface and stalled, held every slot forever.
     #[test]
     fn quiet_connections_are_closed_or_evicted_and_a_stalled_preface_times_out() {
-        let backend = echo_backend();
+        let (_dir, backend) = echo_backend();
         // Idle keep-alives close after the idle timeout.
         let short = GuardLimits {
             idle_timeout: Duration::from_millis(300),
@@ -872,7 +889,7 @@ mod tests {
         };
         let guard = Guard::spawn(
             TcpListener::bind("127.0.0.1:0").unwrap(),
-            backend,
+            backend.clone(),
             short,
             "t",
         )
@@ -942,9 +959,10 @@ mod tests {
             secret: Some("s3cret".into()),
             ..limits()
         };
+        let (_dir, backend) = echo_backend();
         let guard = Guard::spawn(
             TcpListener::bind("127.0.0.1:0").unwrap(),
-            echo_backend(),
+            backend,
             stamping,
             "t",
         )

@@ -182,11 +182,10 @@ pub fn run_live(
                 note(LaunchNote::Exposed { bind: options.bind });
             }
             // The public ports behind guards (connection cap, header timeout, Host check); the
-            // servers themselves on loopback ports behind them.
+            // servers themselves on Unix sockets in a private folder behind them.
             let front = web::Front::bind(&options)?;
             let sink = Sink::Serve {
-                bind: std::net::Ipv4Addr::LOCALHOST.into(),
-                port: front.grpc_backend,
+                socket: front.grpc_backend.clone(),
                 save: launch.save,
             };
             let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;

@@ -1,10 +1,11 @@
-//! Rerun's web viewer (its page, script and wasm) served by us, on loopback behind the viewer
-//! port's guard. Rerun's own `WebViewerServer` answers any local process that finds its port;
-//! this server answers only requests the guard stamped with the session's secret
-//! ([`super::guard::GUARD_HEADER`]), and checks Host itself too. The files are Rerun's
+//! Rerun's web viewer (its page, script and wasm) served by us, on a Unix socket behind the
+//! viewer port's guard. Rerun's own `WebViewerServer` answers any local process that finds its
+//! port; this server listens where only the guard can reach it, answers only requests the guard
+//! stamped with the session's secret ([`super::guard::GUARD_HEADER`]), and checks Host itself
+//! too. The files are Rerun's
 //! (`re_web_viewer_server::WebViewerData`), served by the paths and media types Rerun uses.
 
-use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
@@ -29,16 +30,16 @@ struct Admission {
 }
 
 impl ViewerAssets {
-    /// Serves the viewer on `addr` (a loopback port behind the guard).
+    /// Serves the viewer on the Unix socket `socket` (behind the guard).
     pub fn start(
-        addr: SocketAddr,
+        socket: &Path,
         secret: String,
         loopback_hosts_only: bool,
     ) -> Result<Self, WebError> {
         let data = WebViewerData::load(None).map_err(|e| WebError::Viewer(e.into()))?;
-        let server = tiny_http::Server::http(addr).map_err(|reason| WebError::Bind {
+        let server = tiny_http::Server::http_unix(socket).map_err(|reason| WebError::Socket {
             what: "web viewer",
-            addr,
+            path: socket.to_path_buf(),
             reason,
         })?;
         let server = Arc::new(server);
@@ -129,7 +130,7 @@ fn answer(request: tiny_http::Request, data: &WebViewerData, admission: &Admissi
     let _ = request.respond(response);
 }
 
-/// Whether a request that reached the loopback port may be answered: only through the guard
+/// Whether a request that reached the socket may be answered: only through the guard
 /// (its secret), and on a loopback server only for a loopback Host (no DNS rebinding).
 fn admit(
     stamp: Option<&str>,
@@ -172,8 +173,8 @@ mod tests {
     use super::*;
     use std::io::{Read, Write};
 
-    fn get(port: u16, head: &str) -> String {
-        let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    fn get(socket: &Path, head: &str) -> String {
+        let mut s = std::os::unix::net::UnixStream::connect(socket).unwrap();
         s.set_read_timeout(Some(std::time::Duration::from_secs(10)))
             .unwrap();
         s.write_all(head.as_bytes()).unwrap();
@@ -184,19 +185,19 @@ mod tests {
 
     #[test]
     fn only_stamped_loopback_requests_get_the_viewer() {
-        let port = super::super::guard::free_loopback_port().unwrap();
-        let addr = SocketAddr::from(([127, 0, 0, 1], port));
-        let assets = ViewerAssets::start(addr, "s3cret".into(), true).unwrap();
+        let dir = crate::files::PrivateDir::create("gaitscope-test").unwrap();
+        let socket = dir.join("viewer.sock");
+        let assets = ViewerAssets::start(&socket, "s3cret".into(), true).unwrap();
         let index = WebViewerData::load(None).unwrap().index_html().len();
         let ok = get(
-            port,
+            &socket,
             "GET /index.html HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Gaitscope-Guard: s3cret\r\nConnection: close\r\n\r\n",
         );
         assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
         assert!(ok.contains("text/html"), "{ok}");
         assert!(ok.contains(&format!("rerun-final-length: {index}")), "{ok}");
-        // Refused: straight to the loopback port, as any local process could (no secret, or a
-        // guessed one); a foreign Host; a path Rerun does not serve; anything but a read.
+        // Refused: without the guard's secret (or with a guessed one); a foreign Host; a path
+        // Rerun does not serve; anything but a read.
         for (request, status, says) in [
             (
                 "GET /index.html HTTP/1.1\r\nHost: 127.0.0.1\r\n",
@@ -224,24 +225,17 @@ mod tests {
                 "",
             ),
         ] {
-            let answer = get(port, &format!("{request}Connection: close\r\n\r\n"));
+            let answer = get(&socket, &format!("{request}Connection: close\r\n\r\n"));
             assert!(
                 answer.starts_with(&format!("HTTP/1.1 {status}")),
                 "{answer}"
             );
             assert!(answer.contains(says), "{answer}");
         }
-        // Dropping it ends its thread, and tiny_http's accept thread then lets the port go
-        // (it wakes by connecting to itself: soon, not at once).
+        // Dropping it ends its thread (joined in drop); its folder goes with the PrivateDir.
         drop(assets);
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
-        while std::net::TcpListener::bind(addr).is_err() {
-            assert!(
-                std::time::Instant::now() < deadline,
-                "the port stayed taken"
-            );
-            std::thread::sleep(std::time::Duration::from_millis(20));
-        }
+        drop(dir);
+        assert!(!socket.exists());
     }
 
     #[test]

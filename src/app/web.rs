@@ -154,37 +154,51 @@ pub enum WebError {
     SamePort { port: u16 },
     #[error("starting Rerun's web viewer: {0}")]
     Viewer(#[source] crate::Cause),
+    #[error("cannot listen for the {what} on the socket {path}")]
+    Socket {
+        what: &'static str,
+        path: PathBuf,
+        #[source]
+        reason: crate::Cause,
+    },
+    #[error("cannot create a private folder for the servers' sockets under {}", std::env::temp_dir().display())]
+    SocketDir(#[source] std::io::Error),
 }
 
 /// The public ports, each behind a [`super::guard::Guard`] (connection cap, header timeout
-/// and size, Host check on loopback), and the loopback ports of the servers behind them.
+/// and size, Host check on loopback), and the Unix sockets of the servers behind them, in a
+/// private folder: only the guards (this user's processes) can reach a server.
 pub struct Front {
     guards: Vec<super::guard::Guard>,
     /// What the control page's and the web viewer's guards stamp on every request they relay
     /// ([`super::guard::GUARD_HEADER`]); the servers behind them refuse a request without it.
     secret: String,
-    pub control_backend: u16,
-    pub viewer_backend: u16,
-    pub grpc_backend: u16,
+    pub control_backend: PathBuf,
+    pub viewer_backend: PathBuf,
+    pub grpc_backend: PathBuf,
+    /// Declared last: removed (with the sockets) after the guards stop.
+    _sockets: crate::files::PrivateDir,
 }
 
 impl Front {
     /// Binds the three public ports (a taken one is a clear error) and starts their guards;
     /// the servers come up behind them after.
     pub fn bind(options: &WebOptions) -> Result<Self, WebError> {
-        use super::guard::{Guard, GuardLimits, free_loopback_port};
+        use super::guard::{Guard, GuardLimits};
         let limits = GuardLimits::new(options.is_loopback());
+        let sockets =
+            crate::files::PrivateDir::create("gaitscope-web").map_err(WebError::SocketDir)?;
         // 128 bits from the OS-seeded generator: a local process that finds the loopback
         // port behind the guard cannot guess it.
         let secret = format!("{:032x}", rand::random::<u128>());
         let mut guards = Vec::new();
         let mut backends = Vec::new();
-        // Our control and viewer servers require the secret; Rerun's gRPC server takes none
-        // (HTTP/2 frames carry no header the relay could add).
-        for (what, port, stamped) in [
-            ("control page", options.port, true),
-            ("web viewer", options.viewer_port, true),
-            ("gRPC stream", options.grpc_port, false),
+        // Our control and viewer servers require the secret too; the gRPC proxy takes none
+        // (HTTP/2 frames carry no header the relay could add), its socket is its only door.
+        for (what, port, stamped, socket) in [
+            ("control page", options.port, true, "control.sock"),
+            ("web viewer", options.viewer_port, true, "viewer.sock"),
+            ("gRPC stream", options.grpc_port, false, "grpc.sock"),
         ] {
             let addr = SocketAddr::new(options.bind, port);
             let bind_error = |e: std::io::Error| WebError::Bind {
@@ -193,21 +207,24 @@ impl Front {
                 reason: e.into(),
             };
             let listener = TcpListener::bind(addr).map_err(bind_error)?;
-            let backend = free_loopback_port().map_err(bind_error)?;
-            let to = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), backend);
+            let backend = sockets.join(socket);
             let limits = GuardLimits {
                 secret: stamped.then(|| secret.clone()),
                 ..limits.clone()
             };
-            guards.push(Guard::spawn(listener, to, limits, what).map_err(bind_error)?);
+            guards.push(Guard::spawn(listener, backend.clone(), limits, what).map_err(bind_error)?);
             backends.push(backend);
         }
+        let [control_backend, viewer_backend, grpc_backend]: [PathBuf; 3] = backends
+            .try_into()
+            .unwrap_or_else(|_| unreachable!("three ports"));
         Ok(Self {
             guards,
             secret,
-            control_backend: backends[0],
-            viewer_backend: backends[1],
-            grpc_backend: backends[2],
+            control_backend,
+            viewer_backend,
+            grpc_backend,
+            _sockets: sockets,
         })
     }
 
@@ -252,16 +269,17 @@ impl WebServer {
         findings: Vec<crate::search::Finding>,
     ) -> Result<Self, WebError> {
         let viewer = super::viewer_assets::ViewerAssets::start(
-            SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), front.viewer_backend),
+            &front.viewer_backend,
             front.secret.clone(),
             options.is_loopback(),
         )?;
-        let addr = SocketAddr::new(std::net::Ipv4Addr::LOCALHOST.into(), front.control_backend);
         // tiny_http's error is already a boxed error: the cause as it is.
-        let control = tiny_http::Server::http(addr).map_err(|reason| WebError::Bind {
-            what: "control page",
-            addr,
-            reason,
+        let control = tiny_http::Server::http_unix(&front.control_backend).map_err(|reason| {
+            WebError::Socket {
+                what: "control page",
+                path: front.control_backend.clone(),
+                reason,
+            }
         })?;
         Ok(Self {
             options,
@@ -399,7 +417,7 @@ impl WebServer {
                 .find(|h| h.field.equiv(name))
                 .map(|h| h.value.as_str().to_string())
         };
-        // Only what came through the guard: its loopback port is open to any local process.
+        // Only what came through the guard (this user's other processes can reach its socket too).
         if get(super::guard::GUARD_HEADER).as_deref() != Some(self.front.secret.as_str()) {
             return Err("this port is served through the control page's public port only".into());
         }

@@ -42,6 +42,8 @@ use crate::probe::ProbeFile;
 
 mod blueprint;
 mod logger;
+#[cfg(feature = "web")]
+pub mod proxy;
 mod record;
 mod session;
 pub use blueprint::*;
@@ -165,6 +167,9 @@ pub enum TelemetryError {
         #[source]
         reason: crate::Cause,
     },
+    #[cfg(feature = "web")]
+    #[error("starting the gRPC stream")]
+    Proxy(#[source] proxy::ProxyError),
 }
 
 /// Where a recording goes.
@@ -177,12 +182,12 @@ pub enum Sink {
         url: String,
         save: Option<PathBuf>,
     },
-    /// Our own gRPC server on `bind:port` (for Rerun's web viewer, or any viewer that connects
-    /// to `rerun+http://bind:port/proxy`), and optionally a file as well.
+    /// Rerun's message proxy served by us on a Unix socket (behind `live --web`'s guarded gRPC
+    /// port, for Rerun's web viewer or any viewer given that port; [`proxy`]), and optionally a
+    /// file as well.
     #[cfg(feature = "web")]
     Serve {
-        bind: std::net::IpAddr,
-        port: u16,
+        socket: PathBuf,
         save: Option<PathBuf>,
     },
 }
@@ -281,7 +286,7 @@ pub fn open_titled(
             (rec, None)
         }
         #[cfg(feature = "web")]
-        Sink::Serve { bind, port, save } => {
+        Sink::Serve { socket, save } => {
             let options = rerun::ServerOptions {
                 memory_limit: rerun::MemoryLimit::from_bytes(SERVE_MEMORY_LIMIT_BYTES),
                 // A viewer that joins late gets the present first and the history behind it,
@@ -294,20 +299,18 @@ pub fn open_titled(
                 ..rerun::log::ChunkBatcherConfig::LOW_LATENCY
             };
             let builder = builder.batcher_config(batching);
-            let server = rerun::grpc_server::GrpcServerSink::new(&bind.to_string(), *port, options)
-                .map_err(|e| TelemetryError::Url {
-                    url: format!("{bind}:{port}"),
-                    reason: e.into(),
-                })?;
-            let rec = match save {
+            let file = match save {
                 Some(path) => {
                     create_parent_dir(path)?;
-                    let file =
-                        rerun::sink::FileSink::new(path).map_err(|e| file_sink_error(path, e))?;
-                    builder.set_sinks((file, server))?
+                    Some(rerun::sink::FileSink::new(path).map_err(|e| file_sink_error(path, e))?)
                 }
-                None => builder.set_sinks((server,))?,
+                None => None,
             };
+            let sink = proxy::UnixProxySink::start(socket, options, file)
+                .map_err(TelemetryError::Proxy)?;
+            // Our sink cannot join Rerun's (sealed) multi-sink: it writes the file itself.
+            let rec = builder.buffered()?;
+            rec.set_sink(Box::new(sink));
             (rec, None)
         }
     };
