@@ -187,6 +187,11 @@ pub fn run_live(
             let sink = Sink::Serve {
                 socket: front.grpc_backend.clone(),
                 save: launch.save,
+                admit_host: if options.is_loopback() {
+                    super::guard::is_loopback_host
+                } else {
+                    |_| true
+                },
             };
             let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
             let sim = SimHandle::spawn(rec, launch.setup)?;

@@ -189,6 +189,9 @@ pub enum Sink {
     Serve {
         socket: PathBuf,
         save: Option<PathBuf>,
+        /// Which request hosts the proxy answers (the guard's rule: loopback names only on a
+        /// loopback bind).
+        admit_host: fn(&str) -> bool,
     },
 }
 
@@ -286,7 +289,11 @@ pub fn open_titled(
             (rec, None)
         }
         #[cfg(feature = "web")]
-        Sink::Serve { socket, save } => {
+        Sink::Serve {
+            socket,
+            save,
+            admit_host,
+        } => {
             let options = rerun::ServerOptions {
                 memory_limit: rerun::MemoryLimit::from_bytes(SERVE_MEMORY_LIMIT_BYTES),
                 // A viewer that joins late gets the present first and the history behind it,
@@ -306,7 +313,7 @@ pub fn open_titled(
                 }
                 None => None,
             };
-            let sink = proxy::UnixProxySink::start(socket, options, file)
+            let sink = proxy::UnixProxySink::start(socket, options, file, *admit_host)
                 .map_err(TelemetryError::Proxy)?;
             // Our sink cannot join Rerun's (sealed) multi-sink: it writes the file itself.
             let rec = builder.buffered()?;

@@ -7,8 +7,10 @@
 //! (`re_grpc_server::MessageProxy`, with Rerun's CORS rule and grpc-web layer, as Rerun serves
 //! it) listens on a socket inside the session's private folder (mode 0700), so only this user's
 //! processes — in practice the guard — can connect. The recording reaches it the way Rerun's
-//! client sink sends to a proxy: one `WriteMessages` stream, over the same socket.
+//! client sink sends to a proxy: one `WriteMessages` stream, over the same socket. It checks
+//! each request's host itself too (HTTP/1's `Host`, HTTP/2's `:authority`), as the guard does.
 
+use std::future::Future;
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
 use std::sync::{Arc, Mutex};
@@ -24,6 +26,7 @@ use rerun::sink::{LogSink, SinkFlushError};
 use re_protos::sdk_comms::v1alpha1::WriteMessagesRequest;
 use re_protos::sdk_comms::v1alpha1::message_proxy_service_client::MessageProxyServiceClient;
 use re_protos::sdk_comms::v1alpha1::message_proxy_service_server::MessageProxyServiceServer;
+use tonic::codegen::http;
 
 /// Messages queued for the proxy before `send` blocks (backpressure, as Rerun's sinks do).
 const QUEUE: usize = 1024;
@@ -44,7 +47,8 @@ pub enum ProxyError {
 }
 
 enum Cmd {
-    Msg(Box<LogMsg>),
+    /// A message, encoded on the sender's thread (not the runtime's, which serves the viewers).
+    Msg(Box<WriteMessagesRequest>),
     /// Everything queued before it has been handed to the proxy connection.
     Flush(std::sync::mpsc::Sender<()>),
 }
@@ -60,11 +64,13 @@ pub struct UnixProxySink {
 }
 
 impl UnixProxySink {
-    /// Binds `socket` (its folder must exist and be private) and starts the proxy's thread.
+    /// Binds `socket` (its folder must exist and be private) and starts the proxy's thread;
+    /// requests whose host `admit` refuses are answered 403.
     pub fn start(
         socket: &Path,
         options: re_grpc_server::ServerOptions,
         file: Option<rerun::sink::FileSink>,
+        admit: fn(&str) -> bool,
     ) -> Result<Self, ProxyError> {
         let bind_error = |source| ProxyError::Bind {
             path: socket.to_path_buf(),
@@ -79,7 +85,7 @@ impl UnixProxySink {
         let thread = std::thread::Builder::new()
             .name("gaitscope-grpc-proxy".into())
             .spawn(move || {
-                if let Err(why) = run(listener, &path, options, rx)
+                if let Err(why) = run(listener, &path, options, admit, rx)
                     && let Ok(mut f) = failed.lock()
                 {
                     *f = Some(why);
@@ -104,6 +110,7 @@ fn run(
     listener: std::os::unix::net::UnixListener,
     path: &Path,
     options: re_grpc_server::ServerOptions,
+    admit: fn(&str) -> bool,
     mut rx: tokio::sync::mpsc::Receiver<Cmd>,
 ) -> Result<(), String> {
     let runtime = tokio::runtime::Builder::new_current_thread()
@@ -121,6 +128,7 @@ fn run(
         let server = tonic::transport::Server::builder()
             // grpc-web (the browser viewer) arrives as HTTP/1.1 through the guard.
             .accept_http1(true)
+            .layer(HostCheckLayer(admit))
             .layer(cors)
             .layer(tonic_web::GrpcWebLayer::new())
             .add_service(proxy)
@@ -137,8 +145,8 @@ fn run(
                 Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(stream))
             }
         });
-        // The URI only names the stream to tonic; the connector ignores it.
-        let channel = tonic::transport::Endpoint::from_static("http://gaitscope.proxy")
+        // The connector ignores the URI; its host is what the host check reads.
+        let channel = tonic::transport::Endpoint::from_static("http://localhost")
             .connect_with_connector(connector)
             .await
             .map_err(|e| format!("cannot connect to the gRPC proxy: {e}"))?;
@@ -147,15 +155,7 @@ fn run(
         let messages = futures_util::stream::poll_fn(move |cx| {
             loop {
                 match rx.poll_recv(cx) {
-                    Poll::Ready(Some(Cmd::Msg(msg))) => match msg.to_transport(Compression::LZ4) {
-                        Ok(msg) => {
-                            return Poll::Ready(Some(WriteMessagesRequest {
-                                log_msg: Some(msg.into()),
-                            }));
-                        }
-                        // A message that cannot be encoded is dropped, as Rerun's own sinks do.
-                        Err(_) => continue,
-                    },
+                    Poll::Ready(Some(Cmd::Msg(request))) => return Poll::Ready(Some(*request)),
                     Poll::Ready(Some(Cmd::Flush(done))) => {
                         let _ = done.send(());
                     }
@@ -173,6 +173,57 @@ fn run(
             .map(|_| ())
             .map_err(|e| format!("the gRPC proxy stopped taking the stream: {e}"))
     })
+}
+
+/// Answers 403 to a request whose host — HTTP/1's `Host` header, else HTTP/2's `:authority` —
+/// is missing or refused by the check, before it reaches the proxy.
+#[derive(Clone, Copy)]
+struct HostCheckLayer(fn(&str) -> bool);
+
+impl<S> tower::Layer<S> for HostCheckLayer {
+    type Service = HostCheck<S>;
+
+    fn layer(&self, inner: S) -> HostCheck<S> {
+        HostCheck {
+            inner,
+            admit: self.0,
+        }
+    }
+}
+
+#[derive(Clone)]
+struct HostCheck<S> {
+    inner: S,
+    admit: fn(&str) -> bool,
+}
+
+impl<S, B, R> tower::Service<http::Request<B>> for HostCheck<S>
+where
+    S: tower::Service<http::Request<B>, Response = http::Response<R>>,
+    S::Future: Send + 'static,
+    S::Error: Send + 'static,
+    R: Default + Send + 'static,
+{
+    type Response = http::Response<R>;
+    type Error = S::Error;
+    type Future = Pin<Box<dyn Future<Output = Result<Self::Response, Self::Error>> + Send>>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, request: http::Request<B>) -> Self::Future {
+        let host = match request.headers().get(http::header::HOST) {
+            Some(value) => value.to_str().ok().map(str::to_owned),
+            None => request.uri().authority().map(|a| a.as_str().to_owned()),
+        };
+        if host.as_deref().is_some_and(self.admit) {
+            return Box::pin(self.inner.call(request));
+        }
+        let mut refused = http::Response::new(R::default());
+        *refused.status_mut() = http::StatusCode::FORBIDDEN;
+        Box::pin(std::future::ready(Ok(refused)))
+    }
 }
 
 /// A Unix listener's connections, as tonic's server takes them.
@@ -193,9 +244,13 @@ impl LogSink for UnixProxySink {
         if let Some(file) = &self.file {
             LogSink::send(file, msg.clone());
         }
-        if let Some(tx) = &self.tx {
+        // A message that cannot be encoded is dropped, as Rerun's own sinks do.
+        if let (Some(tx), Ok(encoded)) = (&self.tx, msg.to_transport(Compression::LZ4)) {
+            let request = WriteMessagesRequest {
+                log_msg: Some(encoded.into()),
+            };
             // Fails only once the proxy has stopped (its failure says why, at the next flush).
-            let _ = tx.blocking_send(Cmd::Msg(Box::new(msg)));
+            let _ = tx.blocking_send(Cmd::Msg(Box::new(request)));
         }
     }
 
@@ -248,6 +303,7 @@ mod tests {
             Path::new("/nonexistent/gaitscope/grpc.sock"),
             Default::default(),
             None,
+            |_| true,
         )
         .err()
         .expect("no such folder");
@@ -264,9 +320,30 @@ mod tests {
     fn the_proxy_flushes_and_ends_with_its_sink() {
         let dir = crate::files::PrivateDir::create("gaitscope-test").unwrap();
         let socket = dir.join("grpc.sock");
-        let sink = UnixProxySink::start(&socket, Default::default(), None).unwrap();
+        let sink = UnixProxySink::start(&socket, Default::default(), None, |host| {
+            host.starts_with("localhost")
+        })
+        .unwrap();
         sink.flush_blocking(Duration::from_secs(10)).unwrap();
         assert!(socket.exists());
+        // The proxy checks the host itself: a foreign one is refused before the service, a
+        // loopback one reaches it (grpc-web's answer to an empty request is not a 403).
+        let ask = |host: &str| {
+            use std::io::{Read, Write};
+            let mut s = std::os::unix::net::UnixStream::connect(&socket).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+            let request = format!(
+                "POST /rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages HTTP/1.1\r\n\
+                 Host: {host}\r\nContent-Type: application/grpc-web+proto\r\n\
+                 Content-Length: 0\r\nConnection: close\r\n\r\n"
+            );
+            s.write_all(request.as_bytes()).unwrap();
+            let mut head = [0u8; 12];
+            s.read_exact(&mut head).unwrap();
+            String::from_utf8_lossy(&head).into_owned()
+        };
+        assert_eq!(ask("evil.example"), "HTTP/1.1 403");
+        assert_eq!(ask("localhost:9876"), "HTTP/1.1 200");
         let thread_id = sink.thread.as_ref().map(|t| t.thread().id());
         assert!(thread_id.is_some());
         let started = std::time::Instant::now();
