@@ -179,6 +179,7 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
                 held_out_seed_base: gaitscope::eval::EVAL_SEED_BASE,
                 top: 1,
                 shrink_evaluations: 0,
+                shrink_slack: 0,
                 max_steps: 500,
                 goal_distance: world.env.goal[0].hypot(world.env.goal[1]),
                 seed: 0,

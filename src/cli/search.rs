@@ -45,6 +45,11 @@ pub(crate) struct SearchArgs {
     /// Evaluations the shrinker may spend reducing the best schedule.
     #[arg(long, default_value_t = 100)]
     shrink_evaluations: usize,
+    /// Search-seed episodes whose failure a shrinking step may give back (default 0: none).
+    /// On chaotic walks a 1 % nudge to a joint flips an outcome or two; 1 lets the shrinker
+    /// drop such nudges instead of keeping them as damage.
+    #[arg(long, default_value_t = 0)]
+    shrink_slack: usize,
     /// Search one push per schedule as well — a horizontal force on the torso or a leg, up to
     /// 1,000 N for up to 10 env steps — with at most this impulse (newton-seconds; the Ant
     /// weighs about 9 N). Off unless given.
@@ -120,6 +125,7 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
         held_out_seed_base: args.held_out_seed,
         top: args.top,
         shrink_evaluations: args.shrink_evaluations,
+        shrink_slack: args.shrink_slack,
         max_steps: args.max_steps,
         goal_distance: world.env.goal[0].hypot(world.env.goal[1]),
         seed: args.seed,
