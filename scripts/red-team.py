@@ -513,6 +513,70 @@ def web(t, binary, work, rng):
             p, f"POST /command HTTP/1.1\r\n{host(p)}Content-Type: {c}\r\n{e}Content-Length: "
                f"{len(b.encode())}\r\nConnection: close\r\n\r\n{b}".encode()))
 
+    # Around the guards: the servers behind them listen on no TCP port of their own, only on
+    # Unix sockets in a private folder; reached there without the guard (as this user's own
+    # processes could), each must still refuse.
+    def listening():
+        fds = Path(f"/proc/{live.pid}/fd")
+        inodes = set()
+        for fd in fds.iterdir():
+            try:
+                link = os.readlink(fd)
+            except OSError:
+                continue
+            if link.startswith("socket:["):
+                inodes.add(link[8:-1])
+        tcp = []
+        for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+            for line in Path(table).read_text().splitlines()[1:]:
+                f = line.split()
+                if f[3] == "0A" and f[9] in inodes:
+                    tcp.append(int(f[1].split(":")[1], 16))
+        unix = []
+        for line in Path("/proc/net/unix").read_text().splitlines()[1:]:
+            f = line.split()
+            if len(f) >= 8 and int(f[3], 16) & 0x10000 and f[6] in inodes:
+                unix.append(f[7])
+        return sorted(tcp), unix
+
+    tcp, unix = listening()
+    t.notes.append(f"web: TCP ports listening {tcp} (public {sorted(ports)}); Unix sockets {unix}, "
+                   f"folder modes {sorted({oct(os.stat(os.path.dirname(u)).st_mode & 0o777) for u in unix})}")
+    for extra in sorted(set(tcp) - set(ports)):
+        case("backend TCP port reached directly", extra,
+             lambda p: http(p, f"GET /state HTTP/1.1\r\n{host(p)}Connection: close\r\n\r\n".encode()))
+
+    def unix_http(path, raw):
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.settimeout(10)
+        try:
+            s.connect(path)
+            s.sendall(raw)
+            out = b""
+            while chunk := s.recv(65536):
+                out += chunk
+            return out
+        except OSError as e:
+            return f"error {e}".encode()
+        finally:
+            s.close()
+
+    for path in unix:
+        name = os.path.basename(path)
+        for what, raw in [
+            ("no secret", b"GET /state HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"),
+            ("guessed secret", b"GET /index.html HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Gaitscope-Guard: 0\r\nConnection: close\r\n\r\n"),
+            ("foreign Host", b"POST /rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages HTTP/1.1\r\n"
+                             b"Host: evil.example\r\nContent-Type: application/grpc-web+proto\r\n"
+                             b"Content-Length: 0\r\nConnection: close\r\n\r\n"),
+        ]:
+            if name == "grpc.sock" and what != "foreign Host":
+                # The proxy takes no secret (HTTP/2 frames carry none): its folder is its door,
+                # and a same-user client reads the stream as it could through the public port.
+                continue
+            case(f"{name} reached around the guard, {what}", ports[0],
+                 lambda p, path=path, raw=raw: unix_http(path, raw))
+
     def flood(p, make, n=200):
         socks = []
         for _ in range(n):
