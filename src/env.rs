@@ -190,7 +190,7 @@ impl Ending {
             Ending::Unstable => "MuJoCo reported a diverging simulation",
             Ending::Timeout => "the step limit, upright",
             Ending::TimeoutUpsideDown => "the step limit, the torso upside down",
-            Ending::Flipped => "the torso turned upside down (this world ends the episode there)",
+            Ending::Flipped => "the torso turned upside down, in a world that ends episodes there",
         }
     }
 

@@ -461,6 +461,7 @@ fn the_key_names_each_model_and_every_colour() {
         "**violet**: pinned by hand",
         "LEAPT = the torso leapt above the healthy height band",
         "TIMEOUT UPSIDE DOWN",
+        "FLIPPED = the torso turned upside down, in a world that ends episodes there",
     ] {
         assert!(key.contains(line), "{line:?} in {key}");
     }
