@@ -188,17 +188,19 @@ impl Front {
         let limits = GuardLimits::new(options.is_loopback());
         let sockets =
             crate::files::PrivateDir::create("gaitscope-web").map_err(WebError::SocketDir)?;
-        // 128 bits from the OS-seeded generator: a local process that finds the loopback
-        // port behind the guard cannot guess it.
+        // 128 bits from the OS-seeded generator: this user's other processes, which can reach
+        // the sockets, cannot guess it.
         let secret = format!("{:032x}", rand::random::<u128>());
+        let control_backend = sockets.join("control.sock");
+        let viewer_backend = sockets.join("viewer.sock");
+        let grpc_backend = sockets.join("grpc.sock");
         let mut guards = Vec::new();
-        let mut backends = Vec::new();
         // Our control and viewer servers require the secret too; the gRPC proxy takes none
         // (HTTP/2 frames carry no header the relay could add), its socket is its only door.
-        for (what, port, stamped, socket) in [
-            ("control page", options.port, true, "control.sock"),
-            ("web viewer", options.viewer_port, true, "viewer.sock"),
-            ("gRPC stream", options.grpc_port, false, "grpc.sock"),
+        for (what, port, stamped, backend) in [
+            ("control page", options.port, true, &control_backend),
+            ("web viewer", options.viewer_port, true, &viewer_backend),
+            ("gRPC stream", options.grpc_port, false, &grpc_backend),
         ] {
             let addr = SocketAddr::new(options.bind, port);
             let bind_error = |e: std::io::Error| WebError::Bind {
@@ -207,17 +209,12 @@ impl Front {
                 reason: e.into(),
             };
             let listener = TcpListener::bind(addr).map_err(bind_error)?;
-            let backend = sockets.join(socket);
             let limits = GuardLimits {
                 secret: stamped.then(|| secret.clone()),
                 ..limits.clone()
             };
             guards.push(Guard::spawn(listener, backend.clone(), limits, what).map_err(bind_error)?);
-            backends.push(backend);
         }
-        let [control_backend, viewer_backend, grpc_backend]: [PathBuf; 3] = backends
-            .try_into()
-            .unwrap_or_else(|_| unreachable!("three ports"));
         Ok(Self {
             guards,
             secret,
