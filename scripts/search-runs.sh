@@ -33,6 +33,9 @@ searches=(
   "baseline-push1|--checkpoint checkpoints/baseline --budget 0.05 --push-impulse 1"
   "baseline-push5|--checkpoint checkpoints/baseline --budget 0.05 --push-impulse 5"
   "lstm-fails-baseline-succeeds-push1|--checkpoint checkpoints/encoder-lstm --against checkpoints/baseline --budget 0.05 --push-impulse 1"
+  # baseline-push1 again with one search episode of shrink slack: the same search, a shrinker
+  # that may drop the 1 % nudges the strict one kept.
+  "baseline-push1-slack1|--checkpoint checkpoints/baseline --budget 0.05 --push-impulse 1 --shrink-slack 1"
 )
 for entry in "${searches[@]}"; do
   name=${entry%%|*}
