@@ -44,18 +44,22 @@ impl Drop for Killed {
     }
 }
 
-/// The TCP sockets `pid` listens on, as (address, port), from /proc/net/tcp{,6} and its fds.
-fn listening_sockets(pid: u32) -> Vec<(std::net::IpAddr, u16)> {
+/// The inodes of the sockets `pid` holds open (its fds' `socket:[N]` links; none if it is gone).
+fn socket_inodes(pid: u32) -> Vec<String> {
     let Ok(fds) = std::fs::read_dir(format!("/proc/{pid}/fd")) else {
         return Vec::new();
     };
-    let inodes: Vec<String> = fds
-        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+    fds.filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
         .filter_map(|l| {
             let l = l.to_string_lossy().into_owned();
             Some(l.strip_prefix("socket:[")?.strip_suffix(']')?.to_string())
         })
-        .collect();
+        .collect()
+}
+
+/// The TCP sockets `pid` listens on, as (address, port), from /proc/net/tcp{,6} and its fds.
+fn listening_sockets(pid: u32) -> Vec<(std::net::IpAddr, u16)> {
+    let inodes = socket_inodes(pid);
     let mut out = Vec::new();
     for (file, v6) in [("/proc/net/tcp", false), ("/proc/net/tcp6", true)] {
         let Ok(text) = std::fs::read_to_string(file) else {
@@ -88,16 +92,7 @@ fn listening_sockets(pid: u32) -> Vec<(std::net::IpAddr, u16)> {
 
 /// The paths of the Unix sockets `pid` listens on (`/proc/net/unix`: flag `__SO_ACCEPTCON`).
 fn listening_unix_sockets(pid: u32) -> Vec<PathBuf> {
-    let Ok(fds) = std::fs::read_dir(format!("/proc/{pid}/fd")) else {
-        return Vec::new();
-    };
-    let inodes: Vec<String> = fds
-        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
-        .filter_map(|l| {
-            let l = l.to_string_lossy().into_owned();
-            Some(l.strip_prefix("socket:[")?.strip_suffix(']')?.to_string())
-        })
-        .collect();
+    let inodes = socket_inodes(pid);
     let text = std::fs::read_to_string("/proc/net/unix").unwrap_or_default();
     text.lines()
         .skip(1)

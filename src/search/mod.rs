@@ -1296,6 +1296,10 @@ mod tests {
         fn fails(s: &Schedule) -> bool {
             s.scales[HIP_2] < 0.3 && s.onsets[HIP_2] < 50
         }
+        /// The final distance: larger the more hip_2 is damaged and the earlier.
+        fn distance(s: &Schedule) -> f64 {
+            3.0 * (1.0 - s.scales[HIP_2]) * (1.0 - s.onsets[HIP_2] as f64 / 101.0)
+        }
     }
 
     impl Evaluate for Planted {
@@ -1308,8 +1312,7 @@ mod tests {
             seeds: &[u64],
         ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
             self.calls.fetch_add(1, Ordering::SeqCst);
-            let d = 3.0 * (1.0 - s.scales[HIP_2]) * (1.0 - s.onsets[HIP_2] as f64 / 101.0);
-            Ok(planted_outcomes(seeds, Self::fails(s), d))
+            Ok(planted_outcomes(seeds, Self::fails(s), Self::distance(s)))
         }
     }
 
@@ -1497,8 +1500,7 @@ mod tests {
             self.0.calls.fetch_add(1, Ordering::SeqCst);
             let nudged = s.damaged().any(|i| i != HIP_2);
             // Planted's slope toward the failure, for the search to follow.
-            let d = 3.0 * (1.0 - s.scales[HIP_2]) * (1.0 - s.onsets[HIP_2] as f64 / 101.0);
-            let mut outcomes = planted_outcomes(seeds, Planted::fails(s), d);
+            let mut outcomes = planted_outcomes(seeds, Planted::fails(s), Planted::distance(s));
             if Planted::fails(s) && !nudged {
                 outcomes[0][0].success = true;
             }
