@@ -698,13 +698,16 @@ impl AntEnv {
             Some(Ending::Unstable)
         } else if terminated {
             let z = self.physics.qpos()[2];
+            // A flip is named only where the world ends episodes for it; anything else inside
+            // the band (a non-finite state MuJoCo did not flag) stays a collapse, as before.
             let [lo, hi] = env.healthy_z_range;
+            let flipped = env.terminate_upside_down && self.torso_upside_down();
             Some(if z > hi {
                 Ending::Leapt
-            } else if z < lo {
-                Ending::Collapsed
-            } else {
+            } else if z >= lo && flipped {
                 Ending::Flipped
+            } else {
+                Ending::Collapsed
             })
         } else if truncated {
             Some(if self.torso_upside_down() {
