@@ -937,6 +937,35 @@ impl AntEnv {
         self.plan.as_ref()
     }
 
+    /// What the world's draw kills this episode, died already or still to come, in words: a
+    /// leg's name where all its actuators die at one step (the world's `leg` unit), else the
+    /// joints', in actuator order. Empty when nothing dies. An episode that ends before a death
+    /// still names it: models compared on the same seeds are compared on the same draws.
+    pub fn drawn_deaths(&self) -> Vec<String> {
+        let mut step = self.damage.dead_steps();
+        for d in &self.dead_plan {
+            step[d.actuator].get_or_insert(d.step);
+        }
+        let mut names = Vec::new();
+        let mut named = [false; N_ACTUATORS];
+        for (leg, leg_name) in self.leg_names.iter().enumerate() {
+            let of_leg: Vec<usize> = (0..N_ACTUATORS)
+                .filter(|&a| self.leg_of_actuator[a] == leg)
+                .collect();
+            let first = of_leg.first().and_then(|&a| step[a]);
+            if first.is_some() && of_leg.iter().all(|&a| step[a] == first) {
+                names.push(leg_name.clone());
+                of_leg.iter().for_each(|&a| named[a] = true);
+            }
+        }
+        for a in 0..N_ACTUATORS {
+            if step[a].is_some() && !named[a] {
+                names.push(self.damage.joint_names()[a].clone());
+            }
+        }
+        names
+    }
+
     /// The leg (index into [`Self::leg_names`]) each actuator's joint moves.
     pub fn leg_of_actuator(&self) -> &[usize; N_ACTUATORS] {
         &self.leg_of_actuator

@@ -164,6 +164,79 @@ fn in_the_dead_legs_world_whole_legs_die_by_step_60() {
 }
 
 #[test]
+fn an_episode_names_what_its_draw_kills_before_and_after_the_deaths() {
+    // dead-legs: whole legs, named by leg; dead-joints: a joint or a leg, each by its own name.
+    for (world_name, condition) in [
+        ("dead-legs", Condition::Severe),
+        ("dead-joints", Condition::Severe),
+        ("dead-joints", Condition::Mild),
+    ] {
+        let mut world = GaitConfig::world(world_name).expect("shipped world");
+        world.damage.condition = ConditionChoice::Fixed(condition);
+        let mut env = AntEnv::new(world, 0).unwrap();
+        let mut saw_leg_and_joint = (false, false);
+        for seed in 0..30 {
+            env.reset_with_seed(seed);
+            let plan = env.pending_deaths().to_vec();
+            // Expected by hand from the plan: a leg whose hip and ankle die at one step is
+            // named as the leg, any other dying actuator by its joint.
+            let onset = |a: usize| plan.iter().find(|d| d.actuator == a).map(|d| d.step);
+            let mut want = Vec::new();
+            let mut by_leg = Vec::new();
+            for (leg, [hip, ankle]) in env.leg_actuators().into_iter().enumerate() {
+                if onset(hip).is_some() && onset(hip) == onset(ankle) {
+                    want.push(env.leg_names()[leg].clone());
+                    by_leg.extend([hip, ankle]);
+                }
+            }
+            for d in &plan {
+                if !by_leg.contains(&d.actuator) {
+                    want.push(env.damage().joint_names()[d.actuator].clone());
+                }
+            }
+            let mut named = env.drawn_deaths();
+            named.sort();
+            want.sort();
+            assert_eq!(
+                named, want,
+                "{world_name} {condition} seed {seed}: {plan:?}"
+            );
+            saw_leg_and_joint.0 |= !by_leg.is_empty();
+            saw_leg_and_joint.1 |= by_leg.len() < plan.len();
+            // Walk past every death: the names stay (the deaths moved from plan to past).
+            let before = env.drawn_deaths();
+            let last = plan.iter().map(|d| d.step).max().unwrap_or(0);
+            for _ in 0..=last {
+                if env.is_done() {
+                    break;
+                }
+                env.step(&[0.0; ACT_DIM]).unwrap();
+            }
+            if !env.is_done() {
+                assert!(env.pending_deaths().is_empty());
+            }
+            assert_eq!(env.drawn_deaths(), before, "{world_name} seed {seed}");
+        }
+        assert!(
+            saw_leg_and_joint.0,
+            "{world_name}: no leg died whole in 30 seeds"
+        );
+        if world_name == "dead-legs" {
+            assert!(!saw_leg_and_joint.1, "dead-legs kills whole legs only");
+        } else {
+            assert!(
+                saw_leg_and_joint.1,
+                "{world_name}: no single joint died in 30 seeds"
+            );
+        }
+    }
+    // Nothing dies in the paper's world.
+    let mut paper = AntEnv::new(GaitConfig::default(), 0).unwrap();
+    paper.reset_with_seed(1);
+    assert!(paper.drawn_deaths().is_empty());
+}
+
+#[test]
 fn deaths_to_come_survive_snapshots_forks_and_saved_states() {
     let world = dead_world(Condition::Severe);
     let (mut env, _) = episode_with_deaths(&world);

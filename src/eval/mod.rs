@@ -185,6 +185,10 @@ pub struct EpisodeRecord {
     /// The step from which each actuator ran dead, if the world's draw killed it: which units
     /// a failure had to walk without.
     pub dead_steps: [Option<usize>; N_ACTUATORS],
+    /// What the world's draw killed or was to kill, by name ([`crate::env::AntEnv::drawn_deaths`]):
+    /// the same for every model on a seed, so success can be compared per pattern.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub drawn_deaths: Vec<String>,
     /// The first step run under damage ([`crate::damage::DamageState::damage_onset`]): after
     /// the first trigger, or from a scenario's first weakened joint.
     pub damage_onset: Option<usize>,
@@ -444,6 +448,7 @@ pub fn run_lockstep(
                     triggered_joints: damage.n_triggered(),
                     trigger_steps: damage.first_trigger_steps(),
                     dead_steps: damage.dead_steps(),
+                    drawn_deaths: lane.env().drawn_deaths(),
                     damage_onset: damage.damage_onset(),
                 });
             }
@@ -669,6 +674,9 @@ impl EvalReport {
                 }
             }
         }
+        if let Some(table) = self.deaths_table(&models) {
+            s += &table;
+        }
         if !self.comparisons.is_empty() {
             s += "\n**Encoder vs baseline, per run** (McNemar on paired success@500; each encoder run \
                   against the baseline run of its training seed; b = baseline only, c = encoder \
@@ -728,6 +736,67 @@ impl EvalReport {
         }
         s += &self.across_seeds.markdown();
         s
+    }
+
+    /// Success per pattern of the world's deaths (which legs or joints its draw killed), for
+    /// worlds with dead actuators: one row per pattern, one column per model. `None` when no
+    /// episode drew a death.
+    fn deaths_table(&self, models: &[&str]) -> Option<String> {
+        if self.episodes.iter().all(|e| e.drawn_deaths.is_empty()) {
+            return None;
+        }
+        let pattern = |e: &EpisodeRecord| match e.drawn_deaths.is_empty() {
+            true => "nothing".to_string(),
+            false => e.drawn_deaths.join(" + "),
+        };
+        // Rows: fewer deaths first, then by name.
+        let mut rows: Vec<(usize, String)> = Vec::new();
+        for e in &self.episodes {
+            let row = (e.drawn_deaths.len(), pattern(e));
+            if !rows.contains(&row) {
+                rows.push(row);
+            }
+        }
+        rows.sort();
+        let mut s = format!(
+            "\n**Success@{} by what the world killed** (episodes grouped by the deaths drawn for \
+             their seed, the same for every model; an episode that ended before a death counts \
+             under it; 95 % Wilson intervals)\n\n| killed | episodes |",
+            self.max_steps
+        );
+        for m in models {
+            s += &format!(" {m} |");
+        }
+        s += "\n|---|---:|";
+        s += &"---:|".repeat(models.len());
+        s += "\n";
+        for (_, name) in &rows {
+            let rates: Vec<Rate> = models
+                .iter()
+                .map(|m| {
+                    let of_model: Vec<&EpisodeRecord> = self
+                        .episodes
+                        .iter()
+                        .filter(|e| e.model == *m && pattern(e) == *name)
+                        .collect();
+                    let successes = of_model.iter().filter(|e| e.success).count();
+                    Rate::new(successes, of_model.len())
+                })
+                .collect();
+            let n = rates.first().map_or(0, |r| r.n);
+            s += &format!("| {name} | {n} |");
+            for r in &rates {
+                // Seeds draw the deaths, so every model has the same count; say so if not.
+                let other_n = if r.n == n {
+                    String::new()
+                } else {
+                    format!(" (n = {})", r.n)
+                };
+                s += &format!(" {}{other_n} |", r.percent_with_interval());
+            }
+            s += "\n";
+        }
+        Some(s)
     }
 }
 
@@ -990,6 +1059,83 @@ mod tests {
             refilled_runs: BTreeMap::new(),
             episodes: Vec::new(),
         }
+    }
+
+    fn episode(model: &str, seed: u64, killed: &[&str], success: bool) -> EpisodeRecord {
+        EpisodeRecord {
+            model: model.into(),
+            group: model.into(),
+            train_seed: 0,
+            encoder: EncoderKind::None,
+            condition: Case::Condition(Condition::Mild),
+            episode: seed as usize,
+            seed,
+            success,
+            terminated: success,
+            ending: None,
+            steps: 100,
+            steps_to_success: success.then_some(100),
+            final_distance: 0.0,
+            episode_return: 0.0,
+            triggered_joints: 0,
+            trigger_steps: [None; N_ACTUATORS],
+            dead_steps: [None; N_ACTUATORS],
+            drawn_deaths: killed.iter().map(|k| k.to_string()).collect(),
+            damage_onset: None,
+        }
+    }
+
+    #[test]
+    fn success_by_what_died_counts_each_pattern_per_model() {
+        let mut report = report_with(RecoveryFraction {
+            encoder_severe: 0.0,
+            baseline_severe: 0.0,
+            baseline_healthy: 0.0,
+            value: None,
+        });
+        // Seeds 0–3 kill nothing, 4–7 the back leg, 8–9 the back leg and hip_1: oracle
+        // 4/4, 1/4, 0/2; baseline 2/4, 3/4, 2/2.
+        let killed = |seed: u64| match seed {
+            0..4 => vec![],
+            4..8 => vec!["back_leg"],
+            _ => vec!["back_leg", "hip_1"],
+        };
+        let wins = [
+            ("oracle", [1, 1, 1, 1, 1, 0, 0, 0, 0, 0]),
+            ("baseline", [1, 0, 1, 0, 1, 1, 0, 1, 1, 1]),
+        ];
+        for (model, won) in wins {
+            for seed in 0..10u64 {
+                report
+                    .episodes
+                    .push(episode(model, seed, &killed(seed), won[seed as usize] == 1));
+            }
+        }
+        let table = report.deaths_table(&["oracle", "baseline"]).unwrap();
+        let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ")).collect();
+        let rate = |k, n| Rate::new(k, n).percent_with_interval();
+        assert_eq!(rows[0], "| killed | episodes | oracle | baseline |");
+        assert_eq!(
+            rows[1],
+            format!("| nothing | 4 | {} | {} |", rate(4, 4), rate(2, 4))
+        );
+        assert_eq!(
+            rows[2],
+            format!("| back_leg | 4 | {} | {} |", rate(1, 4), rate(3, 4))
+        );
+        assert_eq!(
+            rows[3],
+            format!("| back_leg + hip_1 | 2 | {} | {} |", rate(0, 2), rate(2, 2))
+        );
+        assert_eq!(rows.len(), 4);
+        // Shown in the report's markdown; absent where nothing died.
+        assert!(report.markdown().contains("by what the world killed"));
+        report
+            .episodes
+            .iter_mut()
+            .for_each(|e| e.drawn_deaths.clear());
+        assert!(report.deaths_table(&["oracle"]).is_none());
+        assert!(!report.markdown().contains("by what the world killed"));
     }
 
     #[test]

@@ -706,6 +706,7 @@ mod tests {
             triggered_joints: first_trigger.map_or(0, |_| 2),
             trigger_steps,
             dead_steps: [None; N_ACTUATORS],
+            drawn_deaths: Vec::new(),
             damage_onset,
         }
     }
