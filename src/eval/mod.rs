@@ -1,6 +1,7 @@
 //! `gaitscope eval`: every model × condition on the same evaluation seeds, deterministic
-//! actions, 500-step limit; success@250/350/500 with Wilson intervals, McNemar's paired test of
-//! each encoder against the baseline, and the recovery fraction.
+//! actions, a step limit (500 by default); success within it and within the paper's tighter
+//! budgets (250/350/500) with Wilson intervals, McNemar's paired test of each encoder against the
+//! baseline, and the recovery fraction, all on success within the limit.
 //!
 //! Episodes run in parallel across cores; within a worker, its episodes step in lockstep so the
 //! policy sees one batch per step instead of one call per env.
@@ -115,6 +116,19 @@ pub const EVAL_SEED_BASE: u64 = 1_000_000_000;
 /// Success is also reported within these step budgets (the paper's).
 pub const SUCCESS_BUDGETS: [usize; 3] = [250, 350, 500];
 
+/// The budgets an evaluation limited to `max_steps` reports success within: the paper's
+/// tighter than the limit, then the limit itself, the success every table leads with and every
+/// comparison is made on (250, 350, 500 at the paper's 500; 250, 350, 400 at 400; 250, 350,
+/// 500, 1000 at 1,000).
+pub fn success_budgets(max_steps: usize) -> Vec<usize> {
+    let mut budgets: Vec<usize> = SUCCESS_BUDGETS
+        .into_iter()
+        .filter(|&b| b < max_steps)
+        .collect();
+    budgets.push(max_steps);
+    budgets
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum EvalError {
     #[error(transparent)]
@@ -206,7 +220,7 @@ pub struct CellSummary {
     pub model: String,
     pub encoder: EncoderKind,
     pub condition: Case,
-    /// Success within each budget of [`SUCCESS_BUDGETS`].
+    /// Success within each budget of [`success_budgets`] (the last: the step limit).
     pub success: BTreeMap<usize, Rate>,
     pub mean_final_distance: f64,
     pub mean_return: f64,
@@ -219,7 +233,7 @@ pub struct Comparison {
     pub baseline: String,
     pub encoder: String,
     pub condition: Case,
-    /// Paired test on success@500: b = baseline only, c = encoder only.
+    /// Paired test on success at the step limit: b = baseline only, c = encoder only.
     pub mcnemar: McNemar,
 }
 
@@ -230,7 +244,7 @@ pub struct EvalReport {
     pub seeds: Vec<u64>,
     pub cells: Vec<CellSummary>,
     pub comparisons: Vec<Comparison>,
-    /// Per encoder model: RF on success@500 against the baseline.
+    /// Per encoder model: RF on success at the step limit against the baseline.
     pub recovery_fraction: BTreeMap<String, RecoveryFraction>,
     /// Runs grouped by model: means over training seeds, paired tests, failure modes.
     pub across_seeds: seeds::AcrossSeeds,
@@ -243,7 +257,7 @@ pub struct EvalReport {
     pub episodes: Vec<EpisodeRecord>,
 }
 
-/// RF on success@500 with the three rates it is computed from.
+/// RF on success at the step limit with the three rates it is computed from.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct RecoveryFraction {
     pub encoder_severe: f64,
@@ -507,9 +521,9 @@ fn summarize(
     for (model, encoder) in &models {
         for &condition in &opts.conditions {
             let eps = cell(model, condition);
-            let success = SUCCESS_BUDGETS
-                .iter()
-                .map(|&b| {
+            let success = success_budgets(opts.max_steps)
+                .into_iter()
+                .map(|b| {
                     (
                         b,
                         Rate::new(
@@ -562,16 +576,18 @@ fn summarize(
         cells
             .iter()
             .find(|x| x.model == model && x.condition == c)
-            .map(|x| x.success[&500].rate)
+            .map(|x| x.success[&opts.max_steps].rate)
     };
     for (model, _) in models.iter().filter(|(_, k)| *k != EncoderKind::None) {
         if let Some(base) = baseline_for(model) {
             for &condition in &opts.conditions {
                 let (b, e) = (cell(base, condition), cell(model, condition));
-                let pairs = b
-                    .iter()
-                    .zip(&e)
-                    .map(|(x, y)| (x.success_within(500), y.success_within(500)));
+                let pairs = b.iter().zip(&e).map(|(x, y)| {
+                    (
+                        x.success_within(opts.max_steps),
+                        y.success_within(opts.max_steps),
+                    )
+                });
                 comparisons.push(Comparison {
                     baseline: base.to_string(),
                     encoder: model.clone(),
@@ -598,7 +614,7 @@ fn summarize(
         }
     }
     EvalReport {
-        across_seeds: seeds::across_seeds(&episodes, &opts.conditions),
+        across_seeds: seeds::across_seeds(&episodes, &opts.conditions, opts.max_steps),
         episodes_per_cell: opts.episodes,
         max_steps: opts.max_steps,
         seeds,
@@ -612,7 +628,8 @@ fn summarize(
 }
 
 impl EvalReport {
-    /// The paper's Table 2 (success@500 by condition) and Table 3 (time budgets, distances).
+    /// The paper's Table 2 (success@500 by condition: at the step limit) and Table 3 (time
+    /// budgets, distances).
     pub fn markdown(&self) -> String {
         let mut models: Vec<&str> = Vec::new();
         for c in &self.cells {
@@ -644,28 +661,33 @@ impl EvalReport {
             s += &format!("| {m} |");
             for &c in &conditions {
                 let cell = get(m, c)
-                    .map(|x| x.success[&500].percent_with_interval())
+                    .map(|x| x.success[&self.max_steps].percent_with_interval())
                     .unwrap_or_default();
                 s += &format!(" {cell} |");
             }
             s += "\n";
         }
-        s += "\n**Time to goal and distance**\n\n| model | condition | success@250 | success@350 | success@500 | mean final distance (m) | mean return | mean steps to success |\n|---|---|---:|---:|---:|---:|---:|---:|\n";
+        let budgets = success_budgets(self.max_steps);
+        s += "\n**Time to goal and distance**\n\n| model | condition |";
+        for b in &budgets {
+            s += &format!(" success@{b} |");
+        }
+        s += " mean final distance (m) | mean return | mean steps to success |\n|---|---|";
+        s += &"---:|".repeat(budgets.len() + 3);
+        s += "\n";
         for m in &models {
             for &c in &conditions {
                 if let Some(x) = get(m, c) {
-                    let pct = |b: usize| {
-                        format!(
-                            "{:.0} % ± {:.0}",
-                            100.0 * x.success[&b].rate,
-                            100.0 * x.success[&b].standard_error
-                        )
-                    };
+                    s += &format!("| {m} | {c} |");
+                    for b in &budgets {
+                        s += &format!(
+                            " {:.0} % ± {:.0} |",
+                            100.0 * x.success[b].rate,
+                            100.0 * x.success[b].standard_error
+                        );
+                    }
                     s += &format!(
-                        "| {m} | {c} | {} | {} | {} | {:.2} | {:.1} | {} |\n",
-                        pct(250),
-                        pct(350),
-                        pct(500),
+                        " {:.2} | {:.1} | {} |\n",
                         x.mean_final_distance,
                         x.mean_return,
                         x.mean_steps_to_success
@@ -678,10 +700,13 @@ impl EvalReport {
             s += &table;
         }
         if !self.comparisons.is_empty() {
-            s += "\n**Encoder vs baseline, per run** (McNemar on paired success@500; each encoder run \
-                  against the baseline run of its training seed; b = baseline only, c = encoder \
-                  only)\n\n| encoder | baseline | condition | b | c | χ² | p (χ²) | p (exact) |\n\
-                  |---|---|---|---:|---:|---:|---:|---:|\n";
+            s += &format!(
+                "\n**Encoder vs baseline, per run** (McNemar on paired success@{}; each encoder \
+                 run against the baseline run of its training seed; b = baseline only, c = \
+                 encoder only)\n\n| encoder | baseline | condition | b | c | χ² | p (χ²) | p \
+                 (exact) |\n|---|---|---|---:|---:|---:|---:|---:|\n",
+                self.max_steps
+            );
             for cmp in &self.comparisons {
                 let m = cmp.mcnemar;
                 s += &format!(
@@ -857,7 +882,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
                 .iter()
                 .filter_map(|&c| get(m, c))
                 .map(|x| {
-                    let r = x.success[&500];
+                    let r = x.success[&report.max_steps];
                     (100.0 * r.rate, 100.0 * r.wilson_low, 100.0 * r.wilson_high)
                 })
                 .collect(),
@@ -927,7 +952,7 @@ pub fn write_outputs(report: &EvalReport, out: &Path) -> Result<Vec<PathBuf>, Ev
     Ok(written)
 }
 
-/// Success@500 per model and condition: the mean over seeds, its bootstrap interval and each
+/// Success at the step limit per model and condition: the mean over seeds, its bootstrap interval and each
 /// seed's rate; and the failure modes as stacked bars.
 fn across_seeds_figures(
     seeds: &seeds::AcrossSeeds,
@@ -968,7 +993,7 @@ fn across_seeds_figures(
                 points: cells
                     .iter()
                     .map(|c| {
-                        let i = c.success[&500];
+                        let i = c.success[&seeds.budget];
                         (100.0 * i.mean, 100.0 * i.low, 100.0 * i.high)
                     })
                     .collect(),
@@ -977,7 +1002,7 @@ fn across_seeds_figures(
                     .map(|c| {
                         c.runs
                             .iter()
-                            .map(|r| 100.0 * r.success[&500].rate)
+                            .map(|r| 100.0 * r.success[&seeds.budget].rate)
                             .collect()
                     })
                     .collect(),
@@ -988,7 +1013,10 @@ fn across_seeds_figures(
     let success_path = out.join("success_across_seeds.png");
     plots::error_bars(
         &success_path,
-        "Success@500 across seeds (95 % bootstrap; ○ one seed)",
+        &format!(
+            "Success@{} across seeds (95 % bootstrap; ○ one seed)",
+            seeds.budget
+        ),
         "success (%)",
         &names,
         &series,
@@ -1055,7 +1083,7 @@ mod tests {
             }],
             recovery_fraction: BTreeMap::from([("encoder".to_string(), rf)]),
             wall_time_s: BTreeMap::new(),
-            across_seeds: seeds::across_seeds(&[], &[]),
+            across_seeds: seeds::across_seeds(&[], &[], 500),
             refilled_runs: BTreeMap::new(),
             episodes: Vec::new(),
         }
@@ -1136,6 +1164,62 @@ mod tests {
             .for_each(|e| e.drawn_deaths.clear());
         assert!(report.deaths_table(&["oracle"]).is_none());
         assert!(!report.markdown().contains("by what the world killed"));
+    }
+
+    #[test]
+    fn every_table_reports_success_within_the_step_limit() {
+        // A 1,000-step evaluation where the encoder reaches the goal in 400, 700 and 900 steps
+        // (and fails once) and the baseline in 300 (and fails three times), under one condition.
+        let mut episodes = Vec::new();
+        for (seed, (enc, base)) in [(400, 300), (700, 0), (900, 0), (0, 0)].iter().enumerate() {
+            for (model, encoder, steps) in [
+                ("encoder", EncoderKind::Lstm, *enc),
+                ("baseline", EncoderKind::None, *base),
+            ] {
+                let mut e = episode(model, seed as u64, &[], steps > 0);
+                e.encoder = encoder;
+                e.condition = Case::Condition(Condition::Severe);
+                e.steps_to_success = (steps > 0).then_some(steps);
+                episodes.push(e);
+            }
+        }
+        let opts = EvalOptions {
+            checkpoints: Vec::new(),
+            told_healthy: Vec::new(),
+            episodes: 4,
+            seed_base: 0,
+            conditions: vec![Case::Condition(Condition::Severe)],
+            scenarios: Vec::new(),
+            max_steps: 1000,
+            threads: 1,
+        };
+        let report = summarize(episodes, &opts, (0..4).collect(), BTreeMap::new());
+        let enc = &report.cells[0];
+        assert_eq!(enc.model, "encoder");
+        let rates: Vec<(usize, usize)> =
+            enc.success.iter().map(|(b, r)| (*b, r.successes)).collect();
+        assert_eq!(rates, [(250, 0), (350, 0), (500, 1), (1000, 3)]);
+        let md = report.markdown();
+        // The headline table: success within 1,000 steps (3 of 4 and 1 of 4).
+        let rate = |k| Rate::new(k, 4).percent_with_interval();
+        assert!(md.contains("**Success@1000 by damage condition"), "{md}");
+        assert!(md.contains(&format!("| encoder | {} |", rate(3))), "{md}");
+        assert!(md.contains(&format!("| baseline | {} |", rate(1))), "{md}");
+        assert!(
+            md.contains(
+                "| model | condition | success@250 | success@350 | success@500 | success@1000 |"
+            ),
+            "{md}"
+        );
+        // McNemar at 1,000: the encoder alone succeeds on seeds 1 and 2 (c = 2), the baseline
+        // alone never (b = 0); at 500 it would be b = 0, c = 0.
+        let m = report.comparisons[0].mcnemar;
+        assert_eq!((m.b, m.c), (0, 2));
+        assert!(md.contains("McNemar on paired success@1000"), "{md}");
+        // The across-seed block compares on the same budget.
+        let group = &report.across_seeds.groups[0];
+        assert_eq!(group.runs[0].success[&1000].successes, 3);
+        assert!(success_budgets(400) == [250, 350, 400] && success_budgets(500) == SUCCESS_BUDGETS);
     }
 
     #[test]

@@ -12,7 +12,7 @@ use super::stats::{
     Interval, McNemar, Rate, improvement_bootstrap, iqm_bootstrap, pooled_mcnemar,
     recovery_fraction, seed_sign_flip_p, sign_flip_floor, stratified_bootstrap,
 };
-use super::{EpisodeRecord, RecoveryFraction, SUCCESS_BUDGETS, episodes_of};
+use super::{EpisodeRecord, RecoveryFraction, episodes_of, success_budgets};
 use crate::damage::Condition;
 use crate::policy::EncoderKind;
 
@@ -155,7 +155,8 @@ pub struct SeedCell {
     pub train_seed: u64,
     pub success: BTreeMap<usize, Rate>,
     pub failure_modes: FailureCounts,
-    /// Success@500 among the episodes that reached damage ([`EpisodeRecord::reached_damage`]).
+    /// Success at the evaluation's budget among the episodes that reached damage
+    /// ([`EpisodeRecord::reached_damage`]).
     pub success_after_damage: Rate,
 }
 
@@ -168,7 +169,7 @@ pub struct GroupCell {
     pub runs: Vec<SeedCell>,
     /// Mean over seeds of success within each budget, with its stratified bootstrap interval.
     pub success: BTreeMap<usize, Interval>,
-    /// rliable's IQM of the seeds' success@500 (the middle half of the runs), with its 95 %
+    /// rliable's IQM of the seeds' success at the budget (the middle half of the runs), with its 95 %
     /// stratified bootstrap interval.
     pub success_iqm: Interval,
     /// Summed over seeds.
@@ -177,7 +178,8 @@ pub struct GroupCell {
     pub success_after_damage: Interval,
 }
 
-/// A model group against a reference group under one condition, on success@500, each run of
+/// A model group against a reference group under one condition, on success at the evaluation's
+/// budget (its step limit: success@500 in the paper's protocol), each run of
 /// the model paired with the reference's run of its training seed on the same eval seeds. The
 /// reference is the baseline for every encoder, and for two encoders the later-listed one (as in
 /// [`Improvement`]: `encoder-lstm` against `encoder-mlp`, `encoder-lstm` against
@@ -204,7 +206,7 @@ pub struct GroupRecovery {
 }
 
 /// rliable's probability of improvement of one group over another under one condition, on the
-/// runs' success@500.
+/// runs' success at the budget.
 #[derive(Debug, Clone, Serialize)]
 pub struct Improvement {
     pub better: String,
@@ -216,6 +218,10 @@ pub struct Improvement {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct AcrossSeeds {
+    /// The evaluation's step limit: every success rate here is success within it (also the
+    /// report's `max_steps`).
+    #[serde(skip)]
+    pub budget: usize,
     pub bootstrap_reps: usize,
     pub bootstrap_seed: u64,
     pub groups: Vec<GroupCell>,
@@ -243,7 +249,8 @@ fn paired_by_seed<'a>(
 
 /// Groups the episodes by model and compares each encoder group with the baseline group and
 /// with each other encoder group.
-pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSeeds {
+/// `budget`: the evaluation's step limit, the success every comparison is made on.
+pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case], budget: usize) -> AcrossSeeds {
     // Groups and their runs in the order they were evaluated; runs (training seed, label)
     // sorted by training seed.
     type Group = (String, EncoderKind, Vec<(u64, String)>);
@@ -284,9 +291,9 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                 seed_cells.push(SeedCell {
                     model: model.clone(),
                     train_seed: *train_seed,
-                    success: SUCCESS_BUDGETS
-                        .iter()
-                        .map(|&b| (b, success_rate(&eps, b)))
+                    success: success_budgets(budget)
+                        .into_iter()
+                        .map(|b| (b, success_rate(&eps, b)))
                         .collect(),
                     failure_modes: FailureCounts::of(eps.iter().copied()),
                     success_after_damage: after_damage(&eps),
@@ -301,9 +308,9 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                     })
                     .collect()
             };
-            let success = SUCCESS_BUDGETS
-                .iter()
-                .map(|&b| {
+            let success = success_budgets(budget)
+                .into_iter()
+                .map(|b| {
                     let interval = stratified_bootstrap(
                         &counts(&|c| c.success[&b]),
                         BOOTSTRAP_REPS,
@@ -315,7 +322,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
             let failure_modes =
                 FailureCounts::of(runs.iter().flat_map(|(_, m)| run_episodes(m, condition)));
             let success_iqm = iqm_bootstrap(
-                &counts(&|c| c.success[&500]),
+                &counts(&|c| c.success[&budget]),
                 BOOTSTRAP_REPS,
                 BOOTSTRAP_SEED,
             );
@@ -353,7 +360,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                     .iter()
                     .zip(&m)
                     .filter(|(x, y)| x.seed == y.seed)
-                    .map(|(x, y)| (x.success_within(500), y.success_within(500)))
+                    .map(|(x, y)| (x.success_within(budget), y.success_within(budget)))
                     .collect();
                 let n = pairs.len().max(1) as f64;
                 let diff = pairs.iter().map(|&(x, y)| y as i32 - x as i32).sum::<i32>();
@@ -403,7 +410,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
             let paired = paired_by_seed(runs, base_runs);
             let rate = |model: &str, c: Case| {
                 let eps = run_episodes(model, c);
-                (!eps.is_empty()).then(|| success_rate(&eps, 500).rate)
+                (!eps.is_empty()).then(|| success_rate(&eps, budget).rate)
             };
             let rf = |es: f64, bs: f64, bh: f64| RecoveryFraction {
                 encoder_severe: es,
@@ -424,7 +431,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                     ))
                 })
                 .collect();
-            let mean_of = |g: &str, c: Case| cell(g, c).map(|x| x.success[&500].mean);
+            let mean_of = |g: &str, c: Case| cell(g, c).map(|x| x.success[&budget].mean);
             if let (Some(es), Some(bs), Some(bh)) = (
                 mean_of(group, Case::Condition(Condition::Severe)),
                 mean_of(base, Case::Condition(Condition::Severe)),
@@ -448,7 +455,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
                     .map(|c| {
                         c.runs
                             .iter()
-                            .map(|r| (r.success[&500].successes, r.success[&500].n))
+                            .map(|r| (r.success[&budget].successes, r.success[&budget].n))
                             .collect()
                     })
                     .unwrap_or_default()
@@ -467,6 +474,7 @@ pub fn across_seeds(episodes: &[EpisodeRecord], conditions: &[Case]) -> AcrossSe
         }
     }
     AcrossSeeds {
+        budget,
         bootstrap_reps: BOOTSTRAP_REPS,
         bootstrap_seed: BOOTSTRAP_SEED,
         groups: cells,
@@ -547,32 +555,51 @@ impl AcrossSeeds {
                 100.0 * i.high
             )
         };
+        let budget = self.budget;
+        // The tighter budgets, widest first (350 and 250 in the paper's protocol).
+        let tighter: Vec<usize> = success_budgets(budget)
+            .into_iter()
+            .rev()
+            .filter(|&b| b < budget)
+            .collect();
         let mut s = format!(
             "**Across training seeds** (success: each seed, then the mean over seeds with its 95 % \
              stratified bootstrap interval: seeds, then episodes within each, {} resamples)\n\n\
-             | model | condition | seeds | success@500 per seed | success@500 | IQM success@500 | success@350 | success@250 |\n\
-             |---|---|---|---|---:|---:|---:|---:|\n",
+             | model | condition | seeds | success@{budget} per seed | success@{budget} | IQM success@{budget} |",
             self.bootstrap_reps
         );
+        for b in &tighter {
+            s += &format!(" success@{b} |");
+        }
+        s += "\n|---|---|---|---|---:|---:|";
+        s += &"---:|".repeat(tighter.len());
+        s += "\n";
         for g in &self.groups {
             let seeds: Vec<String> = g.runs.iter().map(|r| r.train_seed.to_string()).collect();
-            let per_seed: Vec<String> = g.runs.iter().map(|r| pct(r.success[&500].rate)).collect();
+            let per_seed: Vec<String> = g
+                .runs
+                .iter()
+                .map(|r| pct(r.success[&budget].rate))
+                .collect();
             s += &format!(
-                "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
+                "| {} | {} | {} | {} | {} | {} |",
                 g.group,
                 g.condition,
                 seeds.join(", "),
                 per_seed.join(", "),
-                interval(&g.success[&500]),
+                interval(&g.success[&budget]),
                 interval(&g.success_iqm),
-                interval(&g.success[&350]),
-                interval(&g.success[&250]),
             );
+            for b in &tighter {
+                s += &format!(" {} |", interval(&g.success[b]));
+            }
+            s += "\n";
         }
         s += &self.failure_modes_markdown();
         if !self.comparisons.is_empty() {
-            s += "\n**Paired by training seed**: each encoder against the baseline, and each \
-                  pair of encoders (success@500 on the same eval seeds; b = reference only, c = \
+            s += &format!(
+                "\n**Paired by training seed**: each encoder against the baseline, and each \
+                  pair of encoders (success@{budget} on the same eval seeds; b = reference only, c = \
                   model only; mean Δ = model − reference; pooled: Cochran–Mantel–Haenszel with \
                   pairs as strata, i.e. McNemar on the summed discordant pairs, and its exact sign \
                   test; seed sign-flip: the paired permutation test over seeds' mean differences, \
@@ -580,7 +607,8 @@ impl AcrossSeeds {
                   three seeds, 0.031 with six)\n\n\
                   | model | reference | condition | per seed b/c (exact p) | pooled b/c | χ² | \
                   p (χ²) | p (exact) | mean Δ | seed sign-flip p (floor) |\n\
-                  |---|---|---|---|---:|---:|---:|---:|---:|---:|\n";
+                  |---|---|---|---|---:|---:|---:|---:|---:|---:|\n"
+            );
             for c in &self.comparisons {
                 let per_seed: Vec<String> = c
                     .per_seed
@@ -606,12 +634,14 @@ impl AcrossSeeds {
             }
         }
         if !self.improvements.is_empty() {
-            s += "\n**Probability of improvement** (rliable, Agarwal et al. 2021: over every pair of \
+            s += &format!(
+                "\n**Probability of improvement** (rliable, Agarwal et al. 2021: over every pair of \
                   a run of the first model and a run of the second, the share where the first's \
-                  success@500 is higher, ties counting ½; 0.5 = no difference; 95 % bootstrap \
+                  success@{budget} is higher, ties counting ½; 0.5 = no difference; 95 % bootstrap \
                   interval over seeds and episodes. The IQM column above is rliable's interquartile \
                   mean: the mean of the middle half of the runs)\n\n\
-                  | model | than | condition | P(improvement) |\n|---|---|---|---:|\n";
+                  | model | than | condition | P(improvement) |\n|---|---|---|---:|\n"
+            );
             for i in &self.improvements {
                 let p = i.probability_of_improvement;
                 s += &format!(
@@ -637,7 +667,7 @@ impl AcrossSeeds {
             };
             s += &format!(
                 "\nRecovery fraction of {} = (encoder severe − baseline severe) / (baseline healthy \
-                 − baseline severe), success@500: of the means over seeds {}",
+                 − baseline severe), success@{budget}: of the means over seeds {}",
                 r.encoder,
                 show(&r.of_means)
             );
@@ -831,7 +861,7 @@ mod tests {
             run("aux-s1", EncoderKind::Lstm, 1, &[f, f, t, t]),
         ]
         .concat();
-        let report = across_seeds(&episodes, &[Case::Condition(Condition::Severe)]);
+        let report = across_seeds(&episodes, &[Case::Condition(Condition::Severe)], 500);
         // Each encoder against the baseline, then the two encoders (the later one the reference).
         let pairs: Vec<(&str, &str)> = report
             .comparisons
