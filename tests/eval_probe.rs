@@ -3,7 +3,7 @@
 mod common;
 
 use candle_core::Device;
-use gaitscope::eval::{EvalOptions, evaluate, write_outputs};
+use gaitscope::eval::{EvalOptions, evaluate, rescore, write_outputs};
 use gaitscope::policy::checkpoint::TrainingRecord;
 use gaitscope::policy::{EncoderKind, NetConfig, SacConfig, SacModel};
 use gaitscope::{Condition, GaitConfig};
@@ -100,6 +100,96 @@ fn eval_is_deterministic_paired_and_writes_its_outputs() {
         .filter(|e| e.file_name().to_string_lossy().contains("tmp"))
         .collect();
     assert!(leftovers.is_empty());
+}
+
+#[test]
+fn a_saved_evaluation_summarised_again_gives_the_same_tables_and_bad_files_are_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (base, enc) = (tmp.path().join("baseline"), tmp.path().join("encoder"));
+    save_model(&base, EncoderKind::None, 1);
+    save_model(&enc, EncoderKind::Lstm, 2);
+    let report = evaluate(&options(vec![base, enc], 2)).unwrap();
+    let out = tmp.path().join("saved");
+    write_outputs(&report, &out).unwrap();
+    let saved = out.join("eval.json");
+    let again = rescore(&saved).unwrap();
+    assert_eq!(again.episodes, report.episodes);
+    assert_eq!(again.markdown(), report.markdown());
+    // Written again, the file is the same too (its episodes and every summary).
+    let out2 = tmp.path().join("again");
+    write_outputs(&again, &out2).unwrap();
+    assert_eq!(
+        std::fs::read(out2.join("eval.json")).unwrap(),
+        std::fs::read(&saved).unwrap()
+    );
+    // Through the CLI, options that choose episodes are refused beside --rescore.
+    let path = saved.to_str().unwrap();
+    let cli = gaitscope(&["eval", "--rescore", path, "--out", out2.to_str().unwrap()]);
+    assert!(
+        cli.status.success(),
+        "{}",
+        String::from_utf8_lossy(&cli.stderr)
+    );
+    assert_eq!(
+        String::from_utf8_lossy(&cli.stdout).trim_end(),
+        report.markdown().trim_end()
+    );
+    let cli = gaitscope(&["eval", "--rescore", path, "--episodes", "5"]);
+    assert!(!cli.status.success());
+    assert!(String::from_utf8_lossy(&cli.stderr).contains("cannot be used with"));
+
+    // Bad files: clear errors naming the file, nothing written.
+    let text = std::fs::read_to_string(&saved).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let write = |name: &str, body: &str| {
+        let p = tmp.path().join(name);
+        std::fs::write(&p, body).unwrap();
+        p
+    };
+    let mut beyond = json.clone();
+    beyond["episodes"][0]["steps"] = serde_json::json!(61);
+    let mut stranger = json.clone();
+    stranger["episodes"][0]["seed"] = serde_json::json!(5);
+    let mut no_limit = json.clone();
+    no_limit["max_steps"] = serde_json::json!(0);
+    let cases = [
+        (
+            write("torn.json", &text[..text.len() / 2]),
+            "is not an evaluation's eval.json",
+        ),
+        (
+            write("other.json", "{\"episodes\": 3}"),
+            "is not an evaluation's eval.json",
+        ),
+        (
+            write("beyond.json", &beyond.to_string()),
+            "ran 61 steps, beyond its max_steps 60",
+        ),
+        (
+            write("stranger.json", &stranger.to_string()),
+            "seed 5 is not among its seeds",
+        ),
+        (
+            write("no-limit.json", &no_limit.to_string()),
+            "max_steps 0 out of range",
+        ),
+        (tmp.path().to_path_buf(), "cannot read"),
+        (tmp.path().join("missing.json"), "cannot read"),
+    ];
+    for (path, want) in cases {
+        let err = rescore(&path).unwrap_err();
+        let shown = format!("{err}");
+        assert!(shown.contains(want), "{}: {shown}", path.display());
+        assert!(shown.contains(&*path.display().to_string()), "{shown}");
+    }
+    #[cfg(unix)]
+    {
+        let fifo = tmp.path().join("fifo.json");
+        let made = Command::new("mkfifo").arg(&fifo).status().unwrap();
+        assert!(made.success());
+        let err = rescore(&fifo).unwrap_err();
+        assert!(format!("{err}").contains("cannot read"), "{err}");
+    }
 }
 
 fn gaitscope(args: &[&str]) -> std::process::Output {

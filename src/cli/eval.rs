@@ -11,8 +11,20 @@ use super::suite_help;
 #[derive(Args)]
 pub(crate) struct EvalArgs {
     /// Checkpoint folders (give a baseline and encoders to get paired tests and the recovery fraction).
-    #[arg(long = "checkpoint", value_name = "DIR", required = true, num_args = 1..)]
+    #[arg(
+        long = "checkpoint",
+        value_name = "DIR",
+        required_unless_present = "rescore",
+        num_args = 1..
+    )]
     checkpoints: Vec<PathBuf>,
+    /// Summarise a saved evaluation again instead (its eval.json): this version's tables and
+    /// figures from its episodes, no model run (options that choose episodes are refused).
+    #[arg(long, value_name = "FILE", conflicts_with_all = [
+        "checkpoints", "conditions", "scenario", "suite", "told_healthy", "episodes",
+        "max_steps", "seed", "threads",
+    ])]
+    rescore: Option<PathBuf>,
     #[arg(long, default_value_t = 100)]
     episodes: usize,
     /// Conditions to evaluate (default: all three; with --scenario or --suite: healthy, the
@@ -46,6 +58,14 @@ pub(crate) struct EvalArgs {
 }
 
 pub(crate) fn eval_command(args: EvalArgs) -> Result<()> {
+    if let Some(saved) = &args.rescore {
+        let report = gaitscope::eval::rescore(saved)?;
+        println!("{}", report.markdown());
+        for path in gaitscope::eval::write_outputs(&report, &args.out)? {
+            eprintln!("wrote {}", path.display());
+        }
+        return Ok(());
+    }
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));

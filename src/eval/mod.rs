@@ -11,7 +11,7 @@ pub mod stats;
 pub mod typical;
 
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -55,6 +55,22 @@ impl std::fmt::Display for Case {
 impl Serialize for Case {
     fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
         serializer.serialize_str(self.name())
+    }
+}
+
+impl<'de> Deserialize<'de> for Case {
+    /// A condition's name, else a scenario's (as [`Serialize`] writes them).
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(deserializer)?;
+        Ok(
+            match [Condition::Healthy, Condition::Mild, Condition::Severe]
+                .into_iter()
+                .find(|c| c.name() == name)
+            {
+                Some(c) => Case::Condition(c),
+                None => Case::scenario(&name),
+            },
+        )
     }
 }
 
@@ -153,6 +169,20 @@ pub enum EvalError {
     },
     #[error("invalid evaluation options: {0}")]
     Options(String),
+    #[error("cannot read {path}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path} is not an evaluation's eval.json")]
+    SavedJson {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("{path} cannot be summarised again: {why}")]
+    Saved { path: PathBuf, why: String },
 }
 
 #[derive(Debug, Clone)]
@@ -172,7 +202,7 @@ pub struct EvalOptions {
 }
 
 /// One evaluated episode.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EpisodeRecord {
     pub model: String,
     /// The model this run is a seed of ([`seeds::group_of`] its label).
@@ -197,11 +227,13 @@ pub struct EpisodeRecord {
     pub triggered_joints: usize,
     pub trigger_steps: [Option<usize>; N_ACTUATORS],
     /// The step from which each actuator ran dead, if the world's draw killed it: which units
-    /// a failure had to walk without.
+    /// a failure had to walk without. (Absent from evaluations saved before worlds killed
+    /// actuators: none died there.)
+    #[serde(default)]
     pub dead_steps: [Option<usize>; N_ACTUATORS],
     /// What the world's draw killed or was to kill, by name ([`crate::env::AntEnv::drawn_deaths`]):
     /// the same for every model on a seed, so success can be compared per pattern.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub drawn_deaths: Vec<String>,
     /// The first step run under damage ([`crate::damage::DamageState::damage_onset`]): after
     /// the first trigger, or from a scenario's first weakened joint.
@@ -410,6 +442,78 @@ pub fn evaluate(opts: &EvalOptions) -> Result<EvalReport, EvalError> {
     progress.finish_and_clear();
     let mut report = summarize(episodes, opts, seeds, wall_time_s);
     report.refilled_runs = refilled_runs;
+    Ok(report)
+}
+
+/// The most an `eval.json` read back by [`rescore`] may weigh: 100,000 episodes at a few
+/// hundred bytes each.
+pub const MAX_EVAL_JSON_BYTES: u64 = 256 << 20;
+
+/// What [`rescore`] reads of a saved `eval.json`: the episodes and what they were run under.
+#[derive(Deserialize)]
+struct SavedEval {
+    max_steps: usize,
+    seeds: Vec<u64>,
+    #[serde(default)]
+    wall_time_s: BTreeMap<String, f64>,
+    #[serde(default)]
+    refilled_runs: BTreeMap<String, Vec<crate::train::ResumeRecord>>,
+    episodes: Vec<EpisodeRecord>,
+}
+
+/// A saved evaluation (`eval.json`) summarised again by this version's tables, from its
+/// episodes alone: no model runs. The cases keep the order they first appear in.
+pub fn rescore(path: &Path) -> Result<EvalReport, EvalError> {
+    let bad = |why: String| EvalError::Saved {
+        path: path.to_path_buf(),
+        why,
+    };
+    let bytes =
+        crate::files::read_capped(path, MAX_EVAL_JSON_BYTES).map_err(|e| EvalError::Read {
+            path: path.to_path_buf(),
+            source: e,
+        })?;
+    let saved: SavedEval =
+        serde_json::from_slice(&bytes).map_err(|source| EvalError::SavedJson {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    if saved.episodes.is_empty() || saved.seeds.is_empty() {
+        return Err(bad("no episodes".into()));
+    }
+    if !(1..=crate::config::MAX_EPISODE_STEPS).contains(&saved.max_steps) {
+        return Err(bad(format!("max_steps {} out of range", saved.max_steps)));
+    }
+    let mut conditions: Vec<Case> = Vec::new();
+    for e in &saved.episodes {
+        if e.steps > saved.max_steps || e.steps_to_success.is_some_and(|s| s > saved.max_steps) {
+            return Err(bad(format!(
+                "episode {} of {} ran {} steps, beyond its max_steps {}",
+                e.episode, e.model, e.steps, saved.max_steps
+            )));
+        }
+        if !saved.seeds.contains(&e.seed) {
+            return Err(bad(format!(
+                "episode seed {} is not among its seeds",
+                e.seed
+            )));
+        }
+        if !conditions.contains(&e.condition) {
+            conditions.push(e.condition);
+        }
+    }
+    let opts = EvalOptions {
+        checkpoints: Vec::new(),
+        told_healthy: Vec::new(),
+        episodes: saved.seeds.len(),
+        seed_base: saved.seeds[0],
+        conditions,
+        scenarios: Vec::new(),
+        max_steps: saved.max_steps,
+        threads: 1,
+    };
+    let mut report = summarize(saved.episodes, &opts, saved.seeds, saved.wall_time_s);
+    report.refilled_runs = saved.refilled_runs;
     Ok(report)
 }
 
