@@ -405,7 +405,7 @@ fn eval_groups_seeds_and_pairs_them_by_training_seed() {
         let train: Vec<u64> = g.runs.iter().map(|r| r.train_seed).collect();
         assert_eq!(train, [1, 2], "{}", g.group);
         assert_eq!(g.failure_modes.total(), 12);
-        let i = g.success[&500];
+        let i = g.success[&report.max_steps];
         assert!(i.low <= i.mean && i.mean <= i.high, "{i:?}");
     }
     assert_eq!(seeds.comparisons.len(), 2);
@@ -425,7 +425,11 @@ fn eval_groups_seeds_and_pairs_them_by_training_seed() {
     // rliable's aggregates: an IQM per group and condition (of two runs: their mean), the
     // probability of improvement of the encoder over the baseline per condition.
     for g in &seeds.groups {
-        let rates: Vec<f64> = g.runs.iter().map(|r| r.success[&500].rate).collect();
+        let rates: Vec<f64> = g
+            .runs
+            .iter()
+            .map(|r| r.success[&report.max_steps].rate)
+            .collect();
         let mean = rates.iter().sum::<f64>() / rates.len() as f64;
         assert!((g.success_iqm.mean - mean).abs() < 1e-12, "{}", g.group);
     }
@@ -442,7 +446,7 @@ fn eval_groups_seeds_and_pairs_them_by_training_seed() {
     assert!(
         md.contains("Across training seeds")
             && md.contains("Failure modes")
-            && md.contains("IQM success@500")
+            && md.contains("IQM success@60")
             && md.contains("Probability of improvement"),
         "{md}"
     );
