@@ -41,12 +41,18 @@ fn options(checkpoints: Vec<std::path::PathBuf>, threads: usize) -> EvalOptions 
     }
 }
 
+/// A baseline (seed 1) and an LSTM encoder (seed 2) saved under `tmp`.
+fn baseline_and_encoder(tmp: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    let (base, enc) = (tmp.join("baseline"), tmp.join("encoder"));
+    save_model(&base, EncoderKind::None, 1);
+    save_model(&enc, EncoderKind::Lstm, 2);
+    (base, enc)
+}
+
 #[test]
 fn eval_is_deterministic_paired_and_writes_its_outputs() {
     let tmp = tempfile::tempdir().unwrap();
-    let (base, enc) = (tmp.path().join("baseline"), tmp.path().join("encoder"));
-    save_model(&base, EncoderKind::None, 1);
-    save_model(&enc, EncoderKind::Lstm, 2);
+    let (base, enc) = baseline_and_encoder(tmp.path());
     let a = evaluate(&options(vec![base.clone(), enc.clone()], 2)).unwrap();
     let b = evaluate(&options(vec![base.clone(), enc.clone()], 2)).unwrap();
     assert_eq!(a.episodes, b.episodes, "same seed, same episodes");
@@ -105,9 +111,7 @@ fn eval_is_deterministic_paired_and_writes_its_outputs() {
 #[test]
 fn a_saved_evaluation_summarised_again_gives_the_same_tables_and_bad_files_are_refused() {
     let tmp = tempfile::tempdir().unwrap();
-    let (base, enc) = (tmp.path().join("baseline"), tmp.path().join("encoder"));
-    save_model(&base, EncoderKind::None, 1);
-    save_model(&enc, EncoderKind::Lstm, 2);
+    let (base, enc) = baseline_and_encoder(tmp.path());
     let report = evaluate(&options(vec![base, enc], 2)).unwrap();
     let out = tmp.path().join("saved");
     write_outputs(&report, &out).unwrap();
