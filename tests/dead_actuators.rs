@@ -602,3 +602,85 @@ fn an_oracle_told_healthy_reads_ones_and_eval_pairs_it_with_the_truth() {
         "oracle-told-healthy"
     );
 }
+
+/// `train --init-from`: a fresh oracle started from a trained baseline acts exactly as that
+/// baseline, whatever damage it is told, until it updates; the run names its source; a source
+/// that cannot start it is refused before anything is written.
+#[test]
+fn a_warm_started_oracle_acts_as_its_baseline_whatever_it_is_told() {
+    use gaitscope::policy::Policy;
+    use gaitscope::train;
+    use std::sync::Arc;
+    use std::sync::atomic::AtomicBool;
+
+    let world = GaitConfig::world("dead-legs").expect("shipped world");
+    let dir = tempfile::tempdir().unwrap();
+    let base = dir.path().join("baseline");
+    save_model(&base, NetConfig::ant(EncoderKind::None), &world);
+    let warm_options = |out: &str, net: NetConfig, world: &GaitConfig, from: &std::path::Path| {
+        let mut opts = train::ant_options(net.encoder, 60, 5, dir.path().join(out));
+        opts.net = NetConfig {
+            hidden: vec![16, 16],
+            context_len: world.context.len,
+            ..net
+        };
+        opts.env = world.clone();
+        // No update within the run: its weights stay the ones it started from.
+        opts.sac.learning_starts = 60;
+        opts.progress_bar = false;
+        opts.init_from = Some(from.to_path_buf());
+        opts
+    };
+    let stop = || Arc::new(AtomicBool::new(false));
+    let oracle_opts = warm_options(
+        "oracle",
+        NetConfig::ant_oracle(Privileged::Damage),
+        &world,
+        &base,
+    );
+    train::train_ant(oracle_opts, false, stop()).unwrap();
+    let oracle_dir = dir.path().join("oracle");
+    let baseline = Policy::load(&base, None).unwrap();
+    let oracle = Policy::load(&oracle_dir, None).unwrap();
+    assert_eq!(oracle.net().privileged, Privileged::Damage);
+    let window = gaitscope::window::ContextWindow::new(world.context.len);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    for _ in 0..20 {
+        let obs: Vec<f64> = (0..OBS_DIM).map(|_| rng.random_range(-2.0..2.0)).collect();
+        let scales: [f64; N_ACTUATORS] = std::array::from_fn(|_| rng.random_range(0.0..=1.0));
+        let act = |p: &Policy| {
+            p.act_one(&obs, &scales, &window, ActionMode::Deterministic, None)
+                .unwrap()
+                .action
+        };
+        assert_eq!(act(&oracle), act(&baseline), "told {scales:?}");
+    }
+    let state: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(oracle_dir.join("train_state.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(state["warm_start"]["from"], base.to_str().unwrap());
+    assert_eq!(state["warm_start"]["steps_done"], 0);
+
+    // Refused, with nothing written: an oracle as source, another world, an encoder.
+    let oracle_as_source =
+        warm_options("a", NetConfig::ant(EncoderKind::None), &world, &oracle_dir);
+    let paper = GaitConfig::default();
+    let other_world = warm_options("b", NetConfig::ant(EncoderKind::None), &paper, &base);
+    let encoder = warm_options("c", NetConfig::ant(EncoderKind::Lstm), &world, &base);
+    for (opts, want) in [
+        (oracle_as_source, "reads privileged inputs 'damage'"),
+        (
+            other_world,
+            "trained in world 'dead-legs', this run is in 'paper'",
+        ),
+        (encoder, "not encoder lstm"),
+    ] {
+        let out = opts.out.clone();
+        let err = train::train_ant(opts, false, stop())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(want) && err.contains("--init-from"), "{err}");
+        assert!(!out.exists(), "{} was written", out.display());
+    }
+}

@@ -38,6 +38,13 @@ pub(crate) struct TrainArgs {
     /// Continue the run in DIR (weights, optimiser, RNGs, step counter, replay buffer).
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
+    /// A fresh run that starts from a trained memoryless model's weights (a baseline, in the
+    /// same world): as it is, or as an oracle (--privileged) whose damage inputs start at zero
+    /// weight, so both begin by acting exactly as that model. Its own step count, optimiser
+    /// and replay buffer; the --learning-starts steps before the first update act with the
+    /// model's policy, not at random. Implies --encoder none.
+    #[arg(long, value_name = "DIR", conflicts_with = "resume")]
+    init_from: Option<PathBuf>,
     #[arg(long, default_value_t = 10_000)]
     checkpoint_every: u64,
     /// Skip saving the replay buffer (~80 MB) with checkpoints; a resume then refills it.
@@ -150,6 +157,8 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
                  no --encoder {other} (an oracle that reads the true damage needs no memory)"
             ),
         },
+        // A warm start's source is memoryless; an explicit other encoder is refused there.
+        None if args.init_from.is_some() => encoder_flag.unwrap_or(EncoderKind::None),
         None => encoder_flag.unwrap_or(EncoderKind::Lstm),
     };
     let mut opts = train::ant_options(encoder, args.steps, args.seed, out.clone());
@@ -170,6 +179,7 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
     opts.save_replay = !args.no_save_replay;
     opts.replay_dir = args.replay_dir.clone();
     opts.refill = args.refill;
+    opts.init_from = args.init_from.clone();
     opts.progress_bar = !args.quiet;
     if let Some(b) = args.batch_size {
         opts.sac.batch_size = b;

@@ -19,10 +19,12 @@ mod resume;
 pub mod run_dir;
 pub mod sac;
 pub mod update_stats;
+pub mod warm_start;
 
 use metrics::{EpisodeMetrics, MetricsLog, RecentEpisodes, ResumeMetrics, UpdateMetrics};
 pub use resume::{BufferSource, ResumeRecord, RunIdentity, load_learner, read_resumes};
 use resume::{TrainState, aux_name, resume_run, save_run, truncate_metrics};
+pub use warm_start::WarmStart;
 
 use candle_core::Device;
 use rand::{Rng, SeedableRng};
@@ -123,6 +125,9 @@ pub struct TrainOptions {
     /// A resume without its buffer collects min(buffer size, steps done, this) transitions with
     /// the current policy before the next update (at least [`MIN_REFILL`]).
     pub refill: usize,
+    /// A fresh run that starts from this memoryless model's weights ([`warm_start`]); its
+    /// steps before `learning_starts` act with that policy instead of uniform noise.
+    pub init_from: Option<PathBuf>,
 }
 
 /// One env step as the trainer sees it.
@@ -265,6 +270,18 @@ pub fn train_with_save_hook(
         (r.run, r.learner, r.state, r.replay, Some(r.record))
     } else {
         validate_fresh(&opts, task)?;
+        // Built (and warm-started) before the run folder exists, so a refused source leaves
+        // nothing behind.
+        let model = SacModel::new(opts.net.clone(), opts.sac.initial_alpha, opts.seed, &device)?;
+        let warm = match &opts.init_from {
+            Some(from) => Some(warm_start::warm_start(
+                &model,
+                from,
+                &opts.env.world,
+                &device,
+            )?),
+            None => None,
+        };
         let replay_dir = opts.replay_dir.clone().unwrap_or_else(|| opts.out.clone());
         let run = RunDir::lock(&opts.out, &replay_dir)?;
         // A fresh run that was killed during its first save may have left staged files.
@@ -272,7 +289,6 @@ pub fn train_with_save_hook(
         if checkpoint::read_meta(&opts.out).is_ok() {
             return Err(already_a_run(&opts.out));
         }
-        let model = SacModel::new(opts.net.clone(), opts.sac.initial_alpha, opts.seed, &device)?;
         let mut learner = SacLearner::new(model, opts.sac.clone(), device.clone());
         learner.init_aux(opts.seed)?;
         let state = TrainState {
@@ -290,6 +306,7 @@ pub fn train_with_save_hook(
             aux: None,
             replay_dir: (replay_dir != opts.out).then_some(replay_dir),
             resumes: Vec::new(),
+            warm_start: warm,
         };
         let replay = new_replay(&opts);
         truncate_metrics(&opts.out, 0)?;
@@ -338,7 +355,7 @@ pub fn train_with_save_hook(
                         learning_steps_per_s: None,
                     });
                 }
-                let warm_up = state.steps_done < opts.sac.learning_starts as u64;
+                let warm_up = uniform_warm_up(&state, &opts);
                 let (_, ended) = collect_step(
                     task,
                     &mut learner,
@@ -381,7 +398,7 @@ pub fn train_with_save_hook(
         }
 
         // Act (uniform warm-up, then a squashed-Gaussian sample), step, store the transition.
-        let warm_up = state.steps_done < opts.sac.learning_starts as u64;
+        let warm_up = uniform_warm_up(&state, &opts);
         let (step, ended) = collect_step(
             task,
             &mut learner,
@@ -684,6 +701,12 @@ fn validate_options(opts: &TrainOptions) -> Result<(), TrainError> {
     Ok(())
 }
 
+/// Whether this step acts uniformly at random: before `learning_starts`, unless the run was
+/// warm-started, whose policy already walks and fills the buffer with its own actions.
+fn uniform_warm_up(state: &TrainState, opts: &TrainOptions) -> bool {
+    state.steps_done < opts.sac.learning_starts as u64 && state.warm_start.is_none()
+}
+
 fn progress_bar(opts: &TrainOptions, position: u64) -> Option<indicatif::ProgressBar> {
     if !opts.progress_bar {
         return None;
@@ -732,6 +755,7 @@ pub fn ant_options(
         threads: 1,
         replay_dir: None,
         refill: DEFAULT_REFILL,
+        init_from: None,
     }
 }
 
@@ -878,6 +902,7 @@ mod tests {
             threads: 1,
             replay_dir: None,
             refill: MIN_REFILL,
+            init_from: None,
         }
     }
 
@@ -905,6 +930,52 @@ mod tests {
                 (name, std::fs::read(&p).unwrap())
             })
             .collect()
+    }
+
+    #[test]
+    fn a_warm_started_run_fills_its_buffer_with_the_source_policy_not_noise() {
+        let tmp = tempfile::tempdir().unwrap();
+        let source = tmp.path().join("source");
+        let mut learnt = options(source.clone(), 1500);
+        learnt.sac.learning_rate = 3e-3;
+        train(
+            &mut Toy::new(),
+            learnt,
+            false,
+            Arc::new(AtomicBool::new(false)),
+        )
+        .unwrap();
+        // 200 steps and no update, warm-started or not: how far the buffer's actions lie
+        // from the toy's best a = s/2 (uniform noise: about 0.5 on average).
+        let miss = |init_from: Option<PathBuf>, name: &str| {
+            let out = tmp.path().join(name);
+            let mut opts = options(out.clone(), 200);
+            opts.sac.learning_starts = 200;
+            opts.init_from = init_from;
+            let stop = Arc::new(AtomicBool::new(false));
+            train(&mut Toy::new(), opts.clone(), false, stop).unwrap();
+            let state = state_of(&out);
+            assert_eq!(
+                state.adam_steps, [0; 3],
+                "{name}: no update before learning_starts"
+            );
+            let mut replay = new_replay(&opts);
+            restore_replay(&out.join(REPLAY_FILE), state.replay_crc32, &mut replay).unwrap();
+            let mut batch = Batch::default();
+            replay.sample(512, &mut ChaCha8Rng::seed_from_u64(9), &mut batch);
+            let total: f32 = batch
+                .actions
+                .iter()
+                .zip(&batch.obs)
+                .map(|(a, s)| (a - s / 2.0).abs())
+                .sum();
+            (total / 512.0, state.warm_start)
+        };
+        let (warm, record) = miss(Some(source.clone()), "warm");
+        let (cold, none) = miss(None, "cold");
+        assert!(warm < 0.25 && cold > 0.4, "warm {warm}, cold {cold}");
+        assert_eq!(record.map(|w| w.from), Some(source));
+        assert!(none.is_none());
     }
 
     #[test]

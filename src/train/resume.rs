@@ -52,6 +52,9 @@ pub(super) struct TrainState {
     /// Every resume of this run, in order.
     #[serde(default)]
     pub(super) resumes: Vec<ResumeRecord>,
+    /// The model a warm-started run (`--init-from`) began from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub(super) warm_start: Option<super::WarmStart>,
 }
 
 /// Where a resumed run's replay buffer came from.
