@@ -10,7 +10,10 @@
 # its oracle and baseline train to 500k. There the oracle was still worse under damage, with most
 # training steps spent by flipped Ants flailing to the 1,000-step limit, so `dead-legs-short`
 # (the same deaths, 400 steps, a flip ends the episode) trains its pair to 500k next; then the
-# dead-legs pair goes on from 500k to 1M (its oracle was still gaining), then dead-joints'
+# dead-legs pair is asked the narrower question: an oracle and a baseline both warm-started
+# from its 500k baseline (train --init-from; the oracle's damage inputs start at zero weight),
+# 250k steps each, the same seed — what the truth is worth to a policy that already walks. Then
+# the dead-legs pair goes on from 500k to 1M (its oracle was still gaining), then dead-joints'
 # baseline-s1 and oracle-s1 go on to 1M. The LSTM runs
 # follow once oracle − baseline ≥ 15 points on held-out seeds. Each run resumes from its last checkpoint (every
 # 10,000 steps), so `start` is the same command on the first day and on a fresh machine after a
@@ -41,8 +44,8 @@ steps=1000000
 lane_runs() {
   case $1 in
     # Seed 0's pair first, one model per lane, so a pair finishes together.
-    0) echo "dead-joints/oracle-s0 dead-joints/oracle-lost-s0 dead-legs-short/oracle-s0 dead-legs/oracle-s0 dead-joints/baseline-s1" ;;
-    1) echo "dead-joints/baseline-s0 dead-joints/oracle-lost-s1 dead-legs-short/baseline-s0 dead-legs/baseline-s0 dead-joints/oracle-s1" ;;
+    0) echo "dead-joints/oracle-s0 dead-joints/oracle-lost-s0 dead-legs-short/oracle-s0 dead-legs/oracle-warm-s0 dead-legs/oracle-s0 dead-joints/baseline-s1" ;;
+    1) echo "dead-joints/baseline-s0 dead-joints/oracle-lost-s1 dead-legs-short/baseline-s0 dead-legs/baseline-warm-s0 dead-legs/baseline-s0 dead-joints/oracle-s1" ;;
   esac
 }
 
@@ -52,6 +55,12 @@ flags_of() {
   local flags=()
   [ "$world" = seeds ] || flags+=(--world "$world")
   case $model in
+    # Warm starts (train --init-from): both from the world's 500k baseline, told the damage or
+    # not, filling a 10,000-transition buffer with its policy before the first update.
+    *-warm-*)
+      flags+=(--init-from "$runs_dir/$world/baseline-s0" --learning-starts 10000)
+      case $model in oracle-*) flags+=(--privileged damage) ;; esac
+      ;;
     oracle-lost-*) flags+=(--privileged torque-lost) ;;
     oracle-*) flags+=(--privileged damage) ;;
     baseline-*) flags+=(--encoder none) ;;
@@ -69,6 +78,7 @@ flags_of() {
 steps_of() {
   case $1 in
     */oracle-lost-* | dead-legs-short/*) echo 500000 ;;
+    */*-warm-*) echo 250000 ;;
     *) echo "$steps" ;;
   esac
 }

@@ -328,6 +328,40 @@ fn train_check_vets_options_and_config_and_writes_nothing() {
         out.to_str().unwrap(),
     ]);
     assert!(stderr(&done).contains("z size"), "{}", stderr(&done));
+    // A warm start's source is vetted too: a paper-world baseline cannot start a dead-legs run.
+    let base = dir.path().join("base");
+    let made = gaitscope(&[
+        "train",
+        "--encoder",
+        "none",
+        "--steps",
+        "120",
+        "--quiet",
+        "--out",
+        base.to_str().unwrap(),
+    ]);
+    assert!(made.status.success(), "{}", stderr(&made));
+    let check = |world: &str| {
+        gaitscope(&[
+            "train",
+            "--check",
+            "--world",
+            world,
+            "--init-from",
+            base.to_str().unwrap(),
+            "--privileged",
+            "damage",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let done = check("dead-legs");
+    assert!(
+        stderr(&done).contains("trained in world 'paper', this run is in 'dead-legs'"),
+        "{}",
+        stderr(&done)
+    );
+    assert!(check("paper").status.success());
     assert!(!out.exists(), "--check writes nothing");
 }
 

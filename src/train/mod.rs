@@ -239,7 +239,13 @@ pub fn train_ant(
 /// is built once, so a bad model path or config fails here too).
 pub fn check_ant(opts: &TrainOptions) -> Result<(), TrainError> {
     let env = AntEnv::new(opts.env.clone(), opts.seed)?;
-    validate_fresh(opts, &AntTask::new(env, opts.net.privileged))
+    validate_fresh(opts, &AntTask::new(env, opts.net.privileged))?;
+    if let Some(from) = &opts.init_from {
+        let device = Device::Cpu;
+        let model = SacModel::new(opts.net.clone(), opts.sac.initial_alpha, opts.seed, &device)?;
+        warm_start::warm_start(&model, from, &opts.env.world, &device)?;
+    }
+    Ok(())
 }
 
 /// The training loop, for any [`Task`].
