@@ -113,6 +113,7 @@ fn options(encoder: EncoderKind, steps: u64, out: std::path::PathBuf) -> TrainOp
         threads: 1,
         replay_dir: None,
         refill: gaitscope::train::DEFAULT_REFILL,
+        init_from: None,
     }
 }
 
