@@ -778,12 +778,14 @@ impl AntEnv {
     /// [`Self::leg_names`]' order: what can die as a whole leg.
     pub fn leg_actuators(&self) -> Vec<[usize; 2]> {
         (0..N_LEGS)
-            .filter_map(|leg| {
-                let of_leg: Vec<usize> = (0..N_ACTUATORS)
-                    .filter(|&a| self.leg_of_actuator[a] == leg)
-                    .collect();
-                <[usize; 2]>::try_from(of_leg).ok()
-            })
+            .filter_map(|leg| <[usize; 2]>::try_from(self.actuators_of_leg(leg)).ok())
+            .collect()
+    }
+
+    /// The actuators whose joints move leg `leg` (an index into [`Self::leg_names`]).
+    fn actuators_of_leg(&self, leg: usize) -> Vec<usize> {
+        (0..N_ACTUATORS)
+            .filter(|&a| self.leg_of_actuator[a] == leg)
             .collect()
     }
 
@@ -949,9 +951,7 @@ impl AntEnv {
         let mut names = Vec::new();
         let mut named = [false; N_ACTUATORS];
         for (leg, leg_name) in self.leg_names.iter().enumerate() {
-            let of_leg: Vec<usize> = (0..N_ACTUATORS)
-                .filter(|&a| self.leg_of_actuator[a] == leg)
-                .collect();
+            let of_leg = self.actuators_of_leg(leg);
             let first = of_leg.first().and_then(|&a| step[a]);
             if first.is_some() && of_leg.iter().all(|&a| step[a] == first) {
                 names.push(leg_name.clone());

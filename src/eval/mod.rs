@@ -63,10 +63,7 @@ impl<'de> Deserialize<'de> for Case {
     fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
         let name = String::deserialize(deserializer)?;
         Ok(
-            match [Condition::Healthy, Condition::Mild, Condition::Severe]
-                .into_iter()
-                .find(|c| c.name() == name)
-            {
+            match Condition::ALL.into_iter().find(|c| c.name() == name) {
                 Some(c) => Case::Condition(c),
                 None => Case::scenario(&name),
             },
@@ -874,19 +871,23 @@ impl EvalReport {
         if self.episodes.iter().all(|e| e.drawn_deaths.is_empty()) {
             return None;
         }
-        let pattern = |e: &EpisodeRecord| match e.drawn_deaths.is_empty() {
-            true => "nothing".to_string(),
-            false => e.drawn_deaths.join(" + "),
-        };
-        // Rows: fewer deaths first, then by name.
-        let mut rows: Vec<(usize, String)> = Vec::new();
+        // (deaths, pattern) → model → (successes, episodes), in one pass: rows sort fewer
+        // deaths first, then by name.
+        type PerModel<'a> = BTreeMap<&'a str, (usize, usize)>;
+        let mut counts: BTreeMap<(usize, String), PerModel> = BTreeMap::new();
         for e in &self.episodes {
-            let row = (e.drawn_deaths.len(), pattern(e));
-            if !rows.contains(&row) {
-                rows.push(row);
-            }
+            let pattern = match e.drawn_deaths.is_empty() {
+                true => "nothing".to_string(),
+                false => e.drawn_deaths.join(" + "),
+            };
+            let cell = counts
+                .entry((e.drawn_deaths.len(), pattern))
+                .or_default()
+                .entry(e.model.as_str())
+                .or_default();
+            cell.0 += usize::from(e.success);
+            cell.1 += 1;
         }
-        rows.sort();
         let mut s = format!(
             "\n**Success@{} by what the world killed** (episodes grouped by the deaths drawn for \
              their seed, the same for every model; an episode that ended before a death counts \
@@ -899,17 +900,12 @@ impl EvalReport {
         s += "\n|---|---:|";
         s += &"---:|".repeat(models.len());
         s += "\n";
-        for (_, name) in &rows {
+        for ((_, name), by_model) in &counts {
             let rates: Vec<Rate> = models
                 .iter()
                 .map(|m| {
-                    let of_model: Vec<&EpisodeRecord> = self
-                        .episodes
-                        .iter()
-                        .filter(|e| e.model == *m && pattern(e) == *name)
-                        .collect();
-                    let successes = of_model.iter().filter(|e| e.success).count();
-                    Rate::new(successes, of_model.len())
+                    let (successes, n) = by_model.get(m).copied().unwrap_or_default();
+                    Rate::new(successes, n)
                 })
                 .collect();
             let n = rates.first().map_or(0, |r| r.n);

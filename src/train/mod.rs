@@ -912,13 +912,18 @@ mod tests {
         }
     }
 
-    fn run(out: &Path, total: u64, resume: bool) -> Result<TrainSummary, TrainError> {
+    /// Trains the toy task with `opts`, never stopped.
+    fn train_toy(opts: TrainOptions, resume: bool) -> Result<TrainSummary, TrainError> {
         train(
             &mut Toy::new(),
-            options(out.to_owned(), total),
+            opts,
             resume,
             Arc::new(AtomicBool::new(false)),
         )
+    }
+
+    fn run(out: &Path, total: u64, resume: bool) -> Result<TrainSummary, TrainError> {
+        train_toy(options(out.to_owned(), total), resume)
     }
 
     fn state_of(dir: &Path) -> TrainState {
@@ -944,13 +949,7 @@ mod tests {
         let source = tmp.path().join("source");
         let mut learnt = options(source.clone(), 1500);
         learnt.sac.learning_rate = 3e-3;
-        train(
-            &mut Toy::new(),
-            learnt,
-            false,
-            Arc::new(AtomicBool::new(false)),
-        )
-        .unwrap();
+        train_toy(learnt, false).unwrap();
         // 200 steps and no update, warm-started or not: how far the buffer's actions lie
         // from the toy's best a = s/2 (uniform noise: about 0.5 on average).
         let miss = |init_from: Option<PathBuf>, name: &str| {
@@ -958,8 +957,7 @@ mod tests {
             let mut opts = options(out.clone(), 200);
             opts.sac.learning_starts = 200;
             opts.init_from = init_from;
-            let stop = Arc::new(AtomicBool::new(false));
-            train(&mut Toy::new(), opts.clone(), false, stop).unwrap();
+            train_toy(opts.clone(), false).unwrap();
             let state = state_of(&out);
             assert_eq!(
                 state.adam_steps, [0; 3],
@@ -1212,12 +1210,7 @@ mod tests {
         let run_in = |total: u64, resume: bool| {
             let mut opts = options(out.clone(), total);
             opts.replay_dir = Some(elsewhere.clone());
-            train(
-                &mut Toy::new(),
-                opts,
-                resume,
-                Arc::new(AtomicBool::new(false)),
-            )
+            train_toy(opts, resume)
         };
         run_in(200, false).unwrap();
         assert!(elsewhere.join(REPLAY_FILE).exists());
@@ -1334,13 +1327,7 @@ mod tests {
         run(&a, 100, false).unwrap();
         let mut other = options(b.clone(), 150);
         other.seed = 9;
-        train(
-            &mut Toy::new(),
-            other,
-            false,
-            Arc::new(AtomicBool::new(false)),
-        )
-        .unwrap();
+        train_toy(other, false).unwrap();
         std::fs::copy(b.join(OPTIMIZER_FILE), a.join(OPTIMIZER_FILE)).unwrap();
         let err = run(&a, 200, true).unwrap_err().to_string();
         assert!(err.contains("belongs to another run"), "{err}");
