@@ -24,6 +24,8 @@ pub const MAX_REWARD_TERM: f64 = 1e6;
 
 /// The paper's world: Ant-v4, a goal 7.1 m away, fatigue under three conditions.
 pub const PAPER_WORLD: &str = "paper";
+/// The paper's evaluation limit: its world trains to 1,000 steps and judges at 500.
+pub const PAPER_EVAL_STEPS: usize = 500;
 
 /// The shipped worlds (`--world NAME`; `worlds/NAME.json`, docs/world.md): a world is a named
 /// config — env settings and a damage distribution — recorded in every checkpoint trained in it.
@@ -93,7 +95,8 @@ pub struct EnvConfig {
     pub progress_weight: f64,
     /// Paid on the step the torso enters the success radius.
     pub success_bonus: f64,
-    /// Truncation limit: 1000 for training, 500 for evaluation.
+    /// Truncation limit (the paper's world: 1000 for training, 500 for evaluation;
+    /// [`GaitConfig::run_step_limit`]).
     pub max_episode_steps: usize,
     /// Also end the episode (unhealthy) once the torso turns upside down. Off in Ant-v4, where a
     /// flipped Ant stays inside the height band and flails until the step limit.
@@ -179,6 +182,18 @@ impl GaitConfig {
         })?;
         config.validate()?;
         Ok(config)
+    }
+
+    /// The step limit a trained policy runs to when a command is not told one: the paper's
+    /// evaluation limit in the paper's world (which trains to 1,000 and judges at 500), the
+    /// world's own limit in any other (dead-legs: 1,000; dead-legs-short: 400), so a policy is
+    /// never run past the episode its world defines.
+    pub fn run_step_limit(&self) -> usize {
+        if is_paper(&self.world) {
+            self.env.max_episode_steps.min(PAPER_EVAL_STEPS)
+        } else {
+            self.env.max_episode_steps
+        }
     }
 
     /// A shipped world by name ([`WORLDS`]), or a world file (a path ending in `.json`).
@@ -403,6 +418,21 @@ mod tests {
         assert_eq!(c.damage.threshold, 10.0);
         assert_eq!(c.damage.alpha, 1.0);
         assert!(serde_json::from_str::<GaitConfig>(r#"{"damage": {"treshold": 10.0}}"#).is_err());
+    }
+
+    #[test]
+    fn a_policy_runs_to_its_worlds_own_limit() {
+        let limit = |name: &str| GaitConfig::world(name).unwrap().run_step_limit();
+        // The paper trains to 1,000 and judges at 500; the new worlds judge where they end.
+        assert_eq!(GaitConfig::default().env.max_episode_steps, 1000);
+        assert_eq!(limit("paper"), 500);
+        assert_eq!(limit("dead-joints"), 1000);
+        assert_eq!(limit("dead-legs"), 1000);
+        assert_eq!(limit("dead-legs-short"), 400);
+        // Never past the episode a config defines, in the paper's world either.
+        let mut short_paper = GaitConfig::default();
+        short_paper.env.max_episode_steps = 300;
+        assert_eq!(short_paper.run_step_limit(), 300);
     }
 
     #[test]

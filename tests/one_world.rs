@@ -230,3 +230,89 @@ fn a_checkpoint_runs_in_its_own_world_under_every_front_end() {
         }
     }
 }
+
+/// With no --max-steps a checkpoint runs to its own world's limit (the paper's 500 in the
+/// paper's world, a new world's own end elsewhere), never past it; the flag still wins, and
+/// models whose worlds end at different steps need it.
+#[test]
+fn a_checkpoint_runs_to_its_worlds_step_limit_unless_told() {
+    let tmp = tempfile::tempdir().unwrap();
+    let net = gaitscope::policy::NetConfig {
+        hidden: vec![16, 16],
+        ..gaitscope::policy::NetConfig::ant(gaitscope::policy::EncoderKind::None)
+    };
+    // A short world (dead-legs, ending after 40 steps) and the paper's, each with a height
+    // band no untrained Ant leaves, so only the step limit ends an episode.
+    let unbounded = |mut world: GaitConfig| {
+        world.env.healthy_z_range = [-100.0, 100.0];
+        world
+    };
+    let short = tmp.path().join("short");
+    let mut world = unbounded(GaitConfig::world("dead-legs").unwrap());
+    world.env.max_episode_steps = 40;
+    common::save_untrained(&short, net.clone(), &world);
+    let paper = tmp.path().join("paper");
+    common::save_untrained(&paper, net, &unbounded(GaitConfig::default()));
+    let steps = |dir: &Path, extra: &[&str]| -> usize {
+        let mut args = vec![
+            "rollout",
+            "--checkpoint",
+            dir.to_str().unwrap(),
+            "--condition",
+            "healthy",
+            "--episodes",
+            "1",
+            "--json",
+        ];
+        args.extend_from_slice(extra);
+        let lines = common::gaitscope_json_lines(&args).unwrap();
+        assert_eq!(lines[0]["truncated"], true, "{}", lines[0]);
+        lines[0]["steps"].as_u64().unwrap() as usize
+    };
+    assert_eq!(steps(&short, &[]), 40, "the short world's own end");
+    assert_eq!(steps(&short, &["--max-steps", "25"]), 25, "the flag wins");
+    assert_eq!(
+        steps(&paper, &[]),
+        500,
+        "the paper's evaluation limit, not training's 1000"
+    );
+
+    // eval records the limit it judged at: the world's.
+    let out_dir = tmp.path().join("eval");
+    let eval = |models: &[&Path]| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_gaitscope"));
+        cmd.args([
+            "eval",
+            "--episodes",
+            "1",
+            "--conditions",
+            "healthy",
+            "--threads",
+            "1",
+        ]);
+        for m in models {
+            cmd.arg("--checkpoint").arg(m);
+        }
+        cmd.arg("--out").arg(&out_dir).output().unwrap()
+    };
+    let out = eval(&[&short]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let saved: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out_dir.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(saved["max_steps"], 40);
+    assert_eq!(saved["episodes"][0]["steps"], 40);
+    // Two worlds with two limits: said, with both, before any episode runs.
+    let out = eval(&[&short, &paper]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("runs to 40 steps in its world (dead-legs)")
+            && err.contains("paper to 500 in its own (paper)")
+            && err.contains("give --max-steps"),
+        "{err}"
+    );
+}

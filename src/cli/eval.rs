@@ -39,8 +39,11 @@ pub(crate) struct EvalArgs {
     /// intermittent fault, sides mild/severe, a late fault; docs/scenarios.md).
     #[arg(long, value_name = "ood", long_help = suite_help())]
     suite: Vec<String>,
-    #[arg(long, default_value_t = 500)]
-    max_steps: usize,
+    /// Episodes end after this many steps; success is counted within it and within the paper's
+    /// tighter budgets below it (default: the models' world's limit — 500 in the paper's world,
+    /// dead-legs 1000, dead-legs-short 400).
+    #[arg(long, value_name = "N")]
+    max_steps: Option<usize>,
     /// First evaluation seed; episode i uses seed + i for every model.
     #[arg(long, default_value_t = gaitscope::eval::EVAL_SEED_BASE)]
     seed: u64,
@@ -71,6 +74,10 @@ pub(crate) fn eval_command(args: EvalArgs) -> Result<()> {
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let scenarios = gaitscope::damage::scenario::collect(&args.scenario, &args.suite)?;
     let cases = gaitscope::eval::cases(&args.conditions, &scenarios);
+    let max_steps = super::step_limit_of_dirs(
+        args.max_steps,
+        args.checkpoints.iter().chain(&args.told_healthy),
+    )?;
     let opts = gaitscope::eval::EvalOptions {
         checkpoints: args.checkpoints,
         told_healthy: args.told_healthy,
@@ -78,7 +85,7 @@ pub(crate) fn eval_command(args: EvalArgs) -> Result<()> {
         seed_base: args.seed,
         conditions: cases,
         scenarios,
-        max_steps: args.max_steps,
+        max_steps,
         threads,
     };
     let report = gaitscope::eval::evaluate(&opts)?;

@@ -34,8 +34,11 @@ pub(crate) struct LiveArgs {
     /// Playback speed, a multiple of real time (20 env steps/s): 0.25 to 8.
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
-    #[arg(long, default_value_t = 500)]
-    max_steps: usize,
+    /// Truncate episodes after this many steps (default: the checkpoints' world's limit — 500
+    /// in the paper's world, dead-legs 1000, dead-legs-short 400; a model loaded later in the
+    /// panel keeps it).
+    #[arg(long, value_name = "N")]
+    max_steps: Option<usize>,
     /// Sample actions from the policy instead of taking its mean.
     #[arg(long)]
     sampled: bool,
@@ -145,13 +148,14 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
     for dir in std::iter::once(&checkpoint).chain(&args.compare) {
         actors.push(gaitscope::lane::Actor::load(dir)?);
     }
+    let step_limit = super::step_limit(args.max_steps, &actors, &config)?;
     let seed = match (args.seed, args.condition) {
         (Some(seed), _) => seed,
         // By hand, nothing is typical: a person breaks what they like.
         (None, app::LiveCondition::Manual) => 0,
         (None, condition) => {
             let mut typical = config.clone();
-            typical.env.max_episode_steps = args.max_steps;
+            typical.env.max_episode_steps = step_limit;
             typical.damage.condition = gaitscope::ConditionChoice::Fixed(condition.env_condition());
             super::demo_seed(None, &actors, &typical)?.0
         }
@@ -162,7 +166,7 @@ pub(crate) fn live_command(mut args: LiveArgs) -> Result<()> {
         condition: args.condition,
         seed,
         speed: args.speed,
-        step_limit: args.max_steps,
+        step_limit,
         mode: if args.sampled {
             gaitscope::policy::ActionMode::Sampled
         } else {

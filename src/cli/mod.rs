@@ -14,7 +14,7 @@ pub mod train;
 mod values;
 pub mod video;
 
-use anyhow::Result;
+use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 
@@ -89,7 +89,6 @@ pub(crate) fn fork_option(
     })
 }
 
-/// `--init-state FILE`, read and checked before anything starts.
 /// `--init-state`'s file, read and checked, with a warning for each model it does not fit
 /// as saved (another model saved it, a window of another length).
 pub(crate) fn start_state(
@@ -106,6 +105,67 @@ pub(crate) fn start_state(
         }
     }
     Ok(Some(state))
+}
+
+/// `--max-steps`, or else the step limit the models' world runs a policy to
+/// ([`GaitConfig::run_step_limit`]: 500 in the paper's world, the world's own elsewhere) — a
+/// checkpoint's own world, the requested one for a built-in policy or a script. Models whose
+/// worlds end at different steps need the flag: one limit is chosen for all of them.
+pub(crate) fn step_limit(
+    given: Option<usize>,
+    actors: &[gaitscope::lane::Actor],
+    requested: &GaitConfig,
+) -> Result<usize> {
+    let worlds: Vec<(String, &GaitConfig)> = actors
+        .iter()
+        .map(|a| (a.label(), a.policy().map_or(requested, |p| &p.meta.env)))
+        .collect();
+    step_limit_of(given, &worlds, requested)
+}
+
+/// [`step_limit`] for checkpoint folders (their checkpoint.json says their world).
+pub(crate) fn step_limit_of_dirs<'a>(
+    given: Option<usize>,
+    dirs: impl IntoIterator<Item = &'a PathBuf>,
+) -> Result<usize> {
+    if given.is_some() {
+        return step_limit_of(given, &[], &GaitConfig::default());
+    }
+    let mut worlds = Vec::new();
+    for dir in dirs {
+        let meta = gaitscope::policy::checkpoint::read_meta(dir)?;
+        worlds.push((gaitscope::eval::model_label(dir), meta.env));
+    }
+    let named: Vec<(String, &GaitConfig)> = worlds.iter().map(|(l, w)| (l.clone(), w)).collect();
+    step_limit_of(None, &named, &GaitConfig::default())
+}
+
+/// [`step_limit`] for models named by label and world.
+pub(crate) fn step_limit_of(
+    given: Option<usize>,
+    worlds: &[(String, &GaitConfig)],
+    requested: &GaitConfig,
+) -> Result<usize> {
+    if let Some(limit) = given {
+        if limit == 0 {
+            bail!("--max-steps must be at least 1");
+        }
+        return Ok(limit);
+    }
+    let Some((first, first_world)) = worlds.first() else {
+        return Ok(requested.run_step_limit());
+    };
+    let limit = first_world.run_step_limit();
+    if let Some((other, other_world)) = worlds.iter().find(|(_, w)| w.run_step_limit() != limit) {
+        bail!(
+            "{first} runs to {limit} steps in its world ({}) and {other} to {} in its own ({}): \
+             give --max-steps to run them to one limit",
+            first_world.world,
+            other_world.run_step_limit(),
+            other_world.world
+        );
+    }
+    Ok(limit)
 }
 
 /// `--suite`'s long help: each built-in scenario with its one-line description.

@@ -25,8 +25,10 @@ pub(crate) struct ProbeArgs {
     /// Leave each checkpoint's probe.json (the live readout's probes) as it is.
     #[arg(long)]
     no_save: bool,
-    #[arg(long, default_value_t = 500)]
-    max_steps: usize,
+    /// Episodes end after this many steps (default: the models' world's limit — 500 in the
+    /// paper's world, dead-legs 1000, dead-legs-short 400).
+    #[arg(long, value_name = "N")]
+    max_steps: Option<usize>,
     #[arg(long, default_value_t = 2_000_000_000)]
     seed: u64,
     /// Folder for the figures.
@@ -35,11 +37,15 @@ pub(crate) struct ProbeArgs {
 }
 
 pub(crate) fn probe_command(args: ProbeArgs) -> Result<()> {
+    let max_steps = super::step_limit_of_dirs(
+        args.max_steps,
+        args.checkpoints.iter().chain(&args.baseline),
+    )?;
     let run = gaitscope::probe::pipeline::run(&gaitscope::probe::pipeline::ProbeOptions {
         checkpoints: args.checkpoints,
         baseline: args.baseline,
         episodes: args.episodes,
-        max_steps: args.max_steps,
+        max_steps,
         seed: args.seed,
         window_every: args.window_every,
         folds: args.folds,

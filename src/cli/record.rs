@@ -31,8 +31,10 @@ pub(crate) struct RecordArgs {
     /// the terminal say how it was chosen); for a built-in policy, 0.
     #[arg(long)]
     seed: Option<u64>,
-    #[arg(long, default_value_t = 500)]
-    max_steps: usize,
+    /// Truncate episodes after this many steps (default: the models' world's limit — 500 in the
+    /// paper's world, dead-legs 1000, dead-legs-short 400).
+    #[arg(long, value_name = "N")]
+    max_steps: Option<usize>,
     /// The .rrd file to write.
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
@@ -66,8 +68,8 @@ pub(crate) struct ViewArgs {
 
 pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
     use gaitscope::telemetry::{self, Actor, RecordOptions, Sink};
-    if args.episodes == 0 || args.max_steps == 0 {
-        bail!("--episodes and --max-steps must be at least 1");
+    if args.episodes == 0 {
+        bail!("--episodes must be at least 1");
     }
     if args.out.extension().and_then(|e| e.to_str()) != Some("rrd") {
         bail!(
@@ -76,7 +78,6 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
         );
     }
     let mut config = args.env.load()?;
-    config.env.max_episode_steps = args.max_steps;
     config.damage.condition = ConditionChoice::Fixed(args.condition.unwrap_or(Condition::Severe));
     let mut actors = Vec::new();
     for dir in args.checkpoint.iter().chain(&args.compare) {
@@ -85,6 +86,7 @@ pub(crate) fn record_command(args: RecordArgs) -> Result<()> {
     if actors.is_empty() {
         actors.push(Actor::Builtin(args.policy.into()));
     }
+    config.env.max_episode_steps = super::step_limit(args.max_steps, &actors, &config)?;
     for actor in &actors {
         args.env.note_unused(actor, &config);
     }

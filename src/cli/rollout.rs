@@ -29,10 +29,11 @@ pub(crate) struct RolloutArgs {
     /// the start).
     #[arg(long, value_name = "S")]
     seed: Option<u64>,
-    /// Truncate episodes after this many steps (500, the evaluation's limit, as everywhere a
-    /// policy runs; training alone uses the config's 1000).
-    #[arg(long, default_value_t = 500)]
-    max_steps: usize,
+    /// Truncate episodes after this many steps (default: the world's limit for a trained
+    /// policy — 500, the evaluation's, in the paper's world, which trains to 1000; dead-legs
+    /// 1000, dead-legs-short 400).
+    #[arg(long, value_name = "N")]
+    max_steps: Option<usize>,
     /// One JSON object per episode instead of a text line.
     #[arg(long, conflicts_with = "init_state")]
     json: bool,
@@ -66,10 +67,6 @@ pub(crate) struct RolloutArgs {
 
 pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
     let mut config = args.env.load()?;
-    if args.max_steps == 0 {
-        bail!("--max-steps must be at least 1");
-    }
-    config.env.max_episode_steps = args.max_steps;
     if let Some(condition) = args.condition {
         config.damage.condition = ConditionChoice::Fixed(condition);
     } else if args.init_state.is_none() {
@@ -83,6 +80,7 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
     if let (Some(init_path), Some(actions_path)) = (&args.init_state, &args.actions) {
         let init = rollout::read_init_state(init_path)?;
         let actions = rollout::read_actions(actions_path)?;
+        config.env.max_episode_steps = super::step_limit(args.max_steps, &[], &config)?;
         rollout::replay(&config, &init, args.condition, &actions, |record| {
             serde_json::to_writer(&mut out, record)?;
             writeln!(out)
@@ -113,6 +111,8 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
     if let Some(dir) = &args.checkpoint {
         // The checkpoint runs in its own world (lane::Actor::world), with this condition and limit.
         let actor = gaitscope::lane::Actor::load(dir)?;
+        config.env.max_episode_steps =
+            super::step_limit(args.max_steps, std::slice::from_ref(&actor), &config)?;
         args.env.note_unused(&actor, &config);
         let fork = fork_option(args.fork_at, args.fork.as_deref())?;
         let save_at = save_state_option(args.save_state_at.as_deref())?;
@@ -156,6 +156,7 @@ pub(crate) fn rollout_command(args: RolloutArgs) -> Result<()> {
         }
         return Ok(());
     }
+    config.env.max_episode_steps = super::step_limit(args.max_steps, &[], &config)?;
     let mut env = AntEnv::new(config, seed)?;
     for episode in 0..episodes {
         let seed = seed.wrapping_add(episode as u64);

@@ -58,8 +58,10 @@ pub(crate) struct SearchArgs {
     /// The latest step a joint's damage (or the push) may start at.
     #[arg(long, default_value_t = 100)]
     latest_onset: usize,
-    #[arg(long, default_value_t = 500)]
-    max_steps: usize,
+    /// Episodes end after this many steps (default: the models' world's limit — 500 in the
+    /// paper's world, dead-legs 1000, dead-legs-short 400).
+    #[arg(long, value_name = "N")]
+    max_steps: Option<usize>,
     /// The optimiser's seed (and which search seeds the episodes use).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -82,6 +84,7 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
         dirs.reverse();
     }
     let mut models = Vec::new();
+    let mut worlds = Vec::new();
     for dir in &dirs {
         let meta = gaitscope::policy::checkpoint::read_meta(dir)?;
         let mut label = gaitscope::eval::model_label(dir);
@@ -89,18 +92,27 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
             label.push('\'');
         }
         models.push(ModelId {
-            label,
+            label: label.clone(),
             path: dir.display().to_string(),
             model_crc32: meta.model_crc32,
         });
+        worlds.push((label, meta.env));
     }
+    let max_steps = super::step_limit_of(
+        args.max_steps,
+        &worlds
+            .iter()
+            .map(|(l, w)| (l.clone(), w))
+            .collect::<Vec<_>>(),
+        &gaitscope::GaitConfig::default(),
+    )?;
     let evaluator = PolicyEvaluator::new(
         &models
             .iter()
             .zip(&dirs)
             .map(|(m, d)| (m.label.clone(), d.clone()))
             .collect::<Vec<_>>(),
-        args.max_steps,
+        max_steps,
         threads,
     )?;
     let world = evaluator.world();
@@ -126,7 +138,7 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
         top: args.top,
         shrink_evaluations: args.shrink_evaluations,
         shrink_slack: args.shrink_slack,
-        max_steps: args.max_steps,
+        max_steps,
         goal_distance: world.env.goal[0].hypot(world.env.goal[1]),
         seed: args.seed,
         world: world.world.to_string(),

@@ -1,6 +1,6 @@
 //! `gaitscope video`.
 
-use anyhow::{Result, bail};
+use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
 
@@ -37,8 +37,10 @@ pub(crate) struct VideoArgs {
     /// 0 for a built-in policy.
     #[arg(long)]
     seed: Option<u64>,
-    #[arg(long, default_value_t = 500)]
-    max_steps: usize,
+    /// Truncate the episode after this many steps (default: the models' world's limit — 500 in
+    /// the paper's world, dead-legs 1000, dead-legs-short 400).
+    #[arg(long, value_name = "N")]
+    max_steps: Option<usize>,
     /// The MP4 to write (written to FILE.mp4.partial, renamed when complete).
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
@@ -63,7 +65,7 @@ pub(crate) struct VideoArgs {
 
 #[cfg(not(feature = "video"))]
 pub(crate) fn video_command(_: VideoArgs) -> Result<()> {
-    bail!(
+    anyhow::bail!(
         "this gaitscope was built without the `video` feature (MuJoCo's offscreen renderer): \
          build with the default features (needs libegl1, libgl1-mesa-dri and ffmpeg)"
     )
@@ -72,27 +74,24 @@ pub(crate) fn video_command(_: VideoArgs) -> Result<()> {
 #[cfg(feature = "video")]
 pub(crate) fn video_command(args: VideoArgs) -> Result<()> {
     use gaitscope::video::{FrameSpec, VideoOptions, render};
-    if args.max_steps == 0 {
-        bail!("--max-steps must be at least 1");
-    }
     // Each model runs in its own world (lane::Actor::world) under this condition and limit.
     let actor = match &args.checkpoint {
         Some(dir) => gaitscope::lane::Actor::load(dir)?,
         None => gaitscope::lane::Actor::Builtin(args.policy.into()),
     };
     let mut config = args.env.load()?;
-    config.env.max_episode_steps = args.max_steps;
     config.damage.condition = gaitscope::ConditionChoice::Fixed(args.condition);
     let compare = args
         .compare
         .as_deref()
         .map(gaitscope::lane::Actor::load)
         .transpose()?;
-    for a in std::iter::once(&actor).chain(&compare) {
-        args.env.note_unused(a, &config);
-    }
     let actors: Vec<gaitscope::lane::Actor> =
         std::iter::once(&actor).chain(&compare).cloned().collect();
+    config.env.max_episode_steps = super::step_limit(args.max_steps, &actors, &config)?;
+    for a in &actors {
+        args.env.note_unused(a, &config);
+    }
     let (seed, _) = super::demo_seed(args.seed, &actors, &config)?;
     let spec = FrameSpec {
         width: args.width,
