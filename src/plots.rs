@@ -2,6 +2,8 @@
 //! The font (DejaVu Sans) is bundled, so figures render the same on any machine.
 //! Each figure is drawn to a temporary file and renamed into place.
 
+use plotters::coord::ranged1d::{KeyPointHint, NoDefaultFormatting, ValueFormatter};
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Once;
@@ -151,14 +153,70 @@ fn tick_label(value: f64, span: f64) -> String {
     format!("{value:.decimals$}")
 }
 
-/// An error-bar chart's y tick: none above the values' top (the legend's headroom is not a
-/// value), else [`tick_label`].
-fn y_tick_label(value: f64, (bottom, top): (f64, f64)) -> String {
-    let eps = 1e-9 * (top - bottom).abs().max(1.0);
-    if value > top + eps {
-        String::new()
-    } else {
-        tick_label(value, top - bottom)
+/// An error-bar chart's y ticks: round steps (1, 2 or 5 × 10^k, at most six of them) over the
+/// values' range only, and four light grid lines inside each step. The legend's headroom above
+/// the range gets neither: it is not a value, and a tick there would read as one.
+/// Also the decimals a label needs at that step (2 m steps read "2", half metres "2.5").
+fn y_key_points((bottom, top): (f64, f64)) -> (Vec<f64>, Vec<f64>, usize) {
+    let span = top - bottom;
+    if !(span.is_finite() && span > 0.0) {
+        return (vec![bottom], Vec::new(), 0);
+    }
+    let magnitude = 10f64.powf((span / 5.0).log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * magnitude)
+        .find(|s| span / s <= 6.0)
+        .unwrap_or(10.0 * magnitude);
+    let eps = 1e-9 * span;
+    let points = |step: f64| -> Vec<f64> {
+        let first = (bottom / step - 1e-9).ceil() as i64;
+        (first..)
+            .map(|k| k as f64 * step)
+            .take_while(|v| *v <= top + eps)
+            .collect()
+    };
+    let bold = points(step);
+    let light = points(step / 5.0)
+        .into_iter()
+        .filter(|v| bold.iter().all(|b| (b - v).abs() > eps))
+        .collect();
+    let decimals = (-(step.log10() + 1e-9).floor()).clamp(0.0, 9.0) as usize;
+    (bold, light, decimals)
+}
+
+/// A value axis with the ticks given ([`y_key_points`]): plotters' own `WithKeyPoints` has no
+/// number format for `f64`, so the mesh will not draw it.
+struct TickedAxis {
+    range: RangedCoordf64,
+    bold: Vec<f64>,
+    light: Vec<f64>,
+}
+
+impl Ranged for TickedAxis {
+    type ValueType = f64;
+    type FormatOption = NoDefaultFormatting;
+
+    fn range(&self) -> std::ops::Range<f64> {
+        self.range.range()
+    }
+
+    fn map(&self, value: &f64, limit: (i32, i32)) -> i32 {
+        self.range.map(value, limit)
+    }
+
+    fn key_points<Hint: KeyPointHint>(&self, hint: Hint) -> Vec<f64> {
+        if hint.weight().allow_light_points() {
+            self.light.clone()
+        } else {
+            self.bold.clone()
+        }
+    }
+}
+
+impl ValueFormatter<f64> for TickedAxis {
+    fn format(value: &f64) -> String {
+        value.to_string()
     }
 }
 
@@ -177,16 +235,22 @@ pub fn error_bars(
     let width = (120 + 9 * categories.len() * series.len()).max(900) as u32;
     render(path, (width, 560), |root| {
         let n = series.len().max(1) as f64;
+        let (bold, light, decimals) = y_key_points(y_range);
+        let y_axis = TickedAxis {
+            range: (y_range.0..y_top).into(),
+            bold,
+            light,
+        };
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 26))
             .margin(16)
             .x_label_area_size(40)
             .y_label_area_size(60)
-            .build_cartesian_2d(-0.5f64..categories.len() as f64 - 0.5, y_range.0..y_top)?;
+            .build_cartesian_2d(-0.5f64..categories.len() as f64 - 0.5, y_axis)?;
         chart
             .configure_mesh()
             .y_desc(y_label)
-            .y_label_formatter(&|y| y_tick_label(*y, y_range))
+            .y_label_formatter(&|y| format!("{:.decimals$}", y + 0.0))
             .x_labels(categories.len())
             .x_label_formatter(&|x| {
                 let i = x.round() as i64;
@@ -344,7 +408,7 @@ pub fn stacked_bars(
                 .configure_mesh()
                 .y_desc(y_label)
                 .y_labels(6)
-                .y_label_formatter(&|y| y_tick_label(*y, (0.0, top)))
+                .y_label_formatter(&|y| tick_label(*y, top))
                 .x_labels(bars.len())
                 .x_label_formatter(&|x| {
                     let i = x.round() as i64;
@@ -732,16 +796,31 @@ mod tests {
     }
 
     #[test]
-    fn y_ticks_are_labelled_only_over_the_data() {
-        // A success axis: 0…100 %, the legend's headroom above 100 unlabelled.
-        let pct = (0.0, 100.0);
-        assert_eq!(y_tick_label(0.0, pct), "0");
-        assert_eq!(y_tick_label(100.0, pct), "100");
-        assert_eq!(y_tick_label(100.0 + 1e-12, pct), "100");
-        assert_eq!(y_tick_label(120.0, pct), "");
-        // A distance axis of a few metres keeps a decimal.
-        assert_eq!(y_tick_label(2.5, (0.0, 5.2)), "2.5");
-        assert_eq!(y_tick_label(5.5, (0.0, 5.2)), "");
+    fn y_ticks_stop_at_the_data() {
+        // A success axis: 0…100 %, ticks every 20, light lines every 4, none in the legend's
+        // headroom above 100.
+        let (bold, light, decimals) = y_key_points((0.0, 100.0));
+        assert_eq!(bold, [0.0, 20.0, 40.0, 60.0, 80.0, 100.0]);
+        assert_eq!(decimals, 0);
+        assert_eq!(light.len(), 5 * 4);
+        assert!(
+            light
+                .iter()
+                .all(|v| (0.0..100.0).contains(v) && v % 4.0 == 0.0)
+        );
+        assert!(
+            !light.iter().any(|v| v % 20.0 == 0.0),
+            "no light line on a bold one"
+        );
+        // Distance axes of a few metres: whole metres up to 5 (not past 5.2), or half metres.
+        assert_eq!(y_key_points((0.0, 5.2)).0, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
+        let (bold, _, decimals) = y_key_points((0.0, 2.6));
+        assert_eq!(bold, [0.0, 0.5, 1.0, 1.5, 2.0, 2.5]);
+        assert_eq!(decimals, 1);
+        // A range off zero, a fine one, and one with no width (a single value).
+        assert_eq!(y_key_points((-3.0, 7.0)).0, [-2.0, 0.0, 2.0, 4.0, 6.0]);
+        assert_eq!(y_key_points((0.0, 0.1)).2, 2);
+        assert_eq!(y_key_points((4.0, 4.0)), (vec![4.0], vec![], 0));
     }
 
     #[test]
