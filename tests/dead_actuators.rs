@@ -604,10 +604,11 @@ fn an_oracle_told_healthy_reads_ones_and_eval_pairs_it_with_the_truth() {
 }
 
 /// `train --init-from`: a fresh oracle started from a trained baseline acts exactly as that
-/// baseline, whatever damage it is told, until it updates; the run names its source; a source
-/// that cannot start it is refused before anything is written.
+/// baseline, whatever damage it is told, and a fresh encoder model whatever its window holds,
+/// until they update; the run names its source; a source that cannot start it is refused
+/// before anything is written.
 #[test]
-fn a_warm_started_oracle_acts_as_its_baseline_whatever_it_is_told() {
+fn a_warm_started_oracle_or_encoder_acts_as_its_baseline_whatever_it_is_told() {
     use gaitscope::policy::Policy;
     use gaitscope::train;
     use std::sync::Arc;
@@ -662,19 +663,52 @@ fn a_warm_started_oracle_acts_as_its_baseline_whatever_it_is_told() {
     assert_eq!(state["warm_start"]["from"], base.to_str().unwrap());
     assert_eq!(state["warm_start"]["steps_done"], 0);
 
-    // Refused, with nothing written: an oracle as source, another world, an encoder.
+    // An encoder model: z's first-layer rows at zero, so whatever the window holds (a random,
+    // full one here) it acts as the baseline; its encoders are its own fresh ones, so z itself
+    // is not zero.
+    for encoder in [EncoderKind::Lstm, EncoderKind::MlpWindow] {
+        let name = format!("warm-{encoder}");
+        let opts = warm_options(&name, NetConfig::ant(encoder), &world, &base);
+        train::train_ant(opts, false, stop()).unwrap();
+        let model = Policy::load(&dir.path().join(&name), None).unwrap();
+        assert_eq!(model.net().encoder, encoder);
+        for _ in 0..10 {
+            let mut window = gaitscope::window::ContextWindow::new(world.context.len);
+            for _ in 0..world.context.len {
+                let o: Vec<f64> = (0..OBS_DIM).map(|_| rng.random_range(-2.0..2.0)).collect();
+                let a: Vec<f64> = (0..N_ACTUATORS)
+                    .map(|_| rng.random_range(-1.0..1.0))
+                    .collect();
+                window.push(&o, &a);
+            }
+            let obs: Vec<f64> = (0..OBS_DIM).map(|_| rng.random_range(-2.0..2.0)).collect();
+            let healthy = [1.0; N_ACTUATORS];
+            let act = |p: &Policy| {
+                p.act_one(&obs, &healthy, &window, ActionMode::Deterministic, None)
+                    .unwrap()
+            };
+            let (warm, source) = (act(&model), act(&baseline));
+            assert_eq!(warm.action, source.action, "{encoder}");
+            let z = warm.z.expect("an encoder model reports its z");
+            assert!(z.iter().any(|v| *v != 0.0), "{encoder}: z {z:?}");
+        }
+    }
+
+    // Refused, with nothing written: an oracle as source (of an oracle or an encoder model),
+    // another world, an encoder model told the damage.
     let oracle_as_source =
         warm_options("a", NetConfig::ant(EncoderKind::None), &world, &oracle_dir);
     let paper = GaitConfig::default();
     let other_world = warm_options("b", NetConfig::ant(EncoderKind::None), &paper, &base);
-    let encoder = warm_options("c", NetConfig::ant(EncoderKind::Lstm), &world, &base);
+    let encoder_from_oracle =
+        warm_options("c", NetConfig::ant(EncoderKind::Lstm), &world, &oracle_dir);
     for (opts, want) in [
         (oracle_as_source, "reads privileged inputs 'damage'"),
         (
             other_world,
             "trained in world 'dead-legs', this run is in 'paper'",
         ),
-        (encoder, "not encoder lstm"),
+        (encoder_from_oracle, "reads privileged inputs 'damage'"),
     ] {
         let out = opts.out.clone();
         let err = train::train_ant(opts, false, stop())

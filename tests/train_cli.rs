@@ -362,6 +362,20 @@ fn train_check_vets_options_and_config_and_writes_nothing() {
         stderr(&done)
     );
     assert!(check("paper").status.success());
+    // An encoder model, with the dynamics loss too, starts from it as well.
+    let lstm = gaitscope(&[
+        "train",
+        "--check",
+        "--init-from",
+        base.to_str().unwrap(),
+        "--encoder",
+        "lstm",
+        "--aux",
+        "dynamics",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(lstm.status.success(), "{}", stderr(&lstm));
     assert!(!out.exists(), "--check writes nothing");
 }
 

@@ -39,10 +39,11 @@ pub(crate) struct TrainArgs {
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
     /// A fresh run that starts from a trained memoryless model's weights (a baseline, in the
-    /// same world): as it is, or as an oracle (--privileged) whose damage inputs start at zero
-    /// weight, so both begin by acting exactly as that model. Its own step count, optimiser
-    /// and replay buffer; the --learning-starts steps before the first update act with the
-    /// model's policy, not at random. Implies --encoder none.
+    /// same world): as it is, as an oracle (--privileged) whose damage inputs start at zero
+    /// weight, or as an encoder model (--encoder lstm|mlp-window) whose z starts at zero weight
+    /// and whose encoders start fresh, so each begins by acting exactly as that model. Its own
+    /// step count, optimiser and replay buffer; the --learning-starts steps before the first
+    /// update act with the model's policy, not at random. --encoder defaults to none here.
     #[arg(long, value_name = "DIR", conflicts_with = "resume")]
     init_from: Option<PathBuf>,
     #[arg(long, default_value_t = 10_000)]
@@ -157,7 +158,7 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
                  no --encoder {other} (an oracle that reads the true damage needs no memory)"
             ),
         },
-        // A warm start's source is memoryless; an explicit other encoder is refused there.
+        // A warm start's source is memoryless: the same model unless an encoder is asked for.
         None if args.init_from.is_some() => encoder_flag.unwrap_or(EncoderKind::None),
         None => encoder_flag.unwrap_or(EncoderKind::Lstm),
     };

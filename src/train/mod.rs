@@ -125,7 +125,8 @@ pub struct TrainOptions {
     /// A resume without its buffer collects min(buffer size, steps done, this) transitions with
     /// the current policy before the next update (at least [`MIN_REFILL`]).
     pub refill: usize,
-    /// A fresh run that starts from this memoryless model's weights ([`warm_start`]); its
+    /// A fresh run that starts from this memoryless model's weights ([`warm_start`]: an
+    /// encoder model's z and an oracle's privileged inputs at zero weight at first); its
     /// steps before `learning_starts` act with that policy instead of uniform noise.
     pub init_from: Option<PathBuf>,
 }
