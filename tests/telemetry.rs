@@ -431,6 +431,28 @@ fn the_blueprint_makes_cameras_follow_keys_the_models_and_hides_crowded_legends(
     );
 }
 
+/// The fatigue view opens only where fatigue can damage a joint: in the paper's world, not in
+/// dead-legs, where fatigue accumulates but actuators die by the world's draw.
+#[test]
+fn the_fatigue_view_opens_only_in_a_world_where_fatigue_damages() {
+    for (world, shown) in [("paper", true), ("dead-legs", false)] {
+        let mut opts = options(Sink::Memory);
+        opts.config = GaitConfig::world(world).unwrap();
+        opts.config.env.max_episode_steps = 5;
+        let run = record(opts, &AtomicBool::new(false)).unwrap();
+        let views = common::active_blueprint_view_names(&run.storage.unwrap().take());
+        assert!(
+            views.contains(&"Torque scale".to_string()),
+            "{world}: {views:?}"
+        );
+        assert_eq!(
+            views.contains(&"Fatigue per joint (τ = threshold)".to_string()),
+            shown,
+            "{world}: {views:?}"
+        );
+    }
+}
+
 /// The key every recording carries: which colour is which model, and what the legs', gait's,
 /// probe's and PCA's colours and the endings' words mean.
 #[test]

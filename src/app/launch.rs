@@ -127,6 +127,16 @@ pub fn run_live(
     note: &mut dyn FnMut(LaunchNote),
 ) -> Result<Result<SimReport, LiveError>, LaunchError> {
     let (roots, titles) = views(&launch.setup.checkpoint, launch.setup.compare.as_deref());
+    // The fatigue view where some model's world damages by fatigue (a checkpoint runs in its
+    // own world; one that cannot be read fails in the sim, which says why).
+    let shown = telemetry::ViewOptions {
+        fatigue: std::iter::once(&launch.setup.checkpoint)
+            .chain(&launch.setup.compare)
+            .any(|dir| {
+                crate::policy::checkpoint::read_meta(dir).map_or(true, |m| m.env.damage.fatigue)
+            }),
+        ..telemetry::ViewOptions::default()
+    };
     let mut offered = launch.offered;
     for dir in std::iter::once(&launch.setup.checkpoint).chain(&launch.setup.compare) {
         if !offered.contains(dir) {
@@ -156,7 +166,7 @@ pub fn run_live(
                 url,
                 save: launch.save,
             };
-            let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
+            let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles, shown)?;
             let sim = SimHandle::spawn(rec, launch.setup)?;
             let panel = run_panel(&sim, offered, launch.findings, launch.exit_after);
             let finished = sim.shutdown();
@@ -193,7 +203,7 @@ pub fn run_live(
                     |_| true
                 },
             };
-            let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles)?;
+            let (rec, _) = telemetry::open_titled(&sink, &recording_id, &roots, &titles, shown)?;
             let sim = SimHandle::spawn(rec, launch.setup)?;
             let server = web::WebServer::start(options.clone(), front, offered, launch.findings)?;
             note(LaunchNote::Serving {

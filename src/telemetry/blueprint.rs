@@ -61,16 +61,38 @@ pub fn default_titles(roots: &[String]) -> Vec<String> {
 /// The layout with a 3-D view per `world_roots` (titled by `titles`, in the same order) and every
 /// root of `plot_roots` overlaid in the plots (a rewind's branches beside the history they left).
 pub fn layout_with(world_roots: &[String], titles: &[String], plot_roots: &[String]) -> Layout {
-    layout_for(world_roots, titles, plot_roots, false)
+    layout_for(world_roots, titles, plot_roots, ViewOptions::default())
 }
 
-/// [`layout_with`]; with `attribution`, the tabs holding the attribution views come up on them.
+/// Which views a layout shows beyond the fixed ones.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ViewOptions {
+    /// The tabs holding the attribution views come up on them.
+    pub attribution: bool,
+    /// The fatigue view: only where some lane's world triggers damage by fatigue. Fatigue
+    /// accumulates in every world, but where nothing triggers on it (dead-legs: actuators die
+    /// by draw) its rising lines under "τ = threshold" would promise a damage that never comes.
+    pub fatigue: bool,
+}
+
+impl Default for ViewOptions {
+    /// The paper's world: fatigue shown, attribution not up front.
+    fn default() -> Self {
+        Self {
+            attribution: false,
+            fatigue: true,
+        }
+    }
+}
+
+/// [`layout_with`], with the views `views` asks for.
 pub fn layout_for(
     world_roots: &[String],
     titles: &[String],
     plot_roots: &[String],
-    attribution: bool,
+    views: ViewOptions,
 ) -> Layout {
+    let attribution = views.attribution;
     let roots = world_roots;
     let mut properties: Vec<(String, Box<dyn rerun::AsComponents + Send>)> = Vec::new();
     let paths = |leaves: &[&str]| -> Vec<String> {
@@ -121,10 +143,12 @@ pub fn layout_for(
         }
         view
     };
-    let fatigue = series(
-        TimeSeriesView::new("Fatigue per joint (τ = threshold)")
-            .with_contents(paths(&["joints/fatigue", "joints/threshold"])),
-    );
+    let fatigue = views.fatigue.then(|| {
+        series(
+            TimeSeriesView::new("Fatigue per joint (τ = threshold)")
+                .with_contents(paths(&["joints/fatigue", "joints/threshold"])),
+        )
+    });
     let scale = series(TimeSeriesView::new("Torque scale").with_contents(paths(&["joints/scale"])));
     let latent = series(TimeSeriesView::new("z").with_contents(paths(&["latent/z"])));
     // Its legend stays: ten named groups are the point of this plot.
@@ -207,9 +231,14 @@ pub fn layout_for(
             ])
             .with_row_shares([3.0, 1.2])
             .into(),
-            Vertical::new([gait.into(), fatigue, scale, progress])
-                .with_row_shares([1.5, 1.0, 1.0, 1.0])
-                .into(),
+            match fatigue {
+                Some(fatigue) => Vertical::new([gait.into(), fatigue, scale, progress])
+                    .with_row_shares([1.5, 1.0, 1.0, 1.0]),
+                None => {
+                    Vertical::new([gait.into(), scale, progress]).with_row_shares([1.5, 1.0, 1.0])
+                }
+            }
+            .into(),
             Vertical::new([
                 tabs(vec![latent, why], why_path).into(),
                 tabs(vec![pca.into(), pca3.into(), why_grid], grid_path).into(),
@@ -257,19 +286,18 @@ pub fn send_layout_with(
     titles: &[String],
     plot_roots: &[String],
 ) -> Result<(), TelemetryError> {
-    send_layout_for(rec, world_roots, titles, plot_roots, false)
+    send_layout_for(rec, world_roots, titles, plot_roots, ViewOptions::default())
 }
 
-/// [`send_layout_with`], the attribution views up front when `attribution` (see
-/// [`layout_for`]).
+/// [`send_layout_with`], with the views `views` asks for (see [`layout_for`]).
 pub fn send_layout_for(
     rec: &RecordingStream,
     world_roots: &[String],
     titles: &[String],
     plot_roots: &[String],
-    attribution: bool,
+    views: ViewOptions,
 ) -> Result<(), TelemetryError> {
-    let key = format!("{world_roots:?} {titles:?} {plot_roots:?} {attribution}");
+    let key = format!("{world_roots:?} {titles:?} {plot_roots:?} {views:?}");
     let cached = LAYOUTS.lock().ok().and_then(|cache| {
         cache
             .iter()
@@ -279,7 +307,7 @@ pub fn send_layout_for(
     let (messages, activation) = match cached {
         Some(built) => built,
         None => {
-            let built = build_layout(world_roots, titles, plot_roots, attribution)?;
+            let built = build_layout(world_roots, titles, plot_roots, views)?;
             if let Ok(mut cache) = LAYOUTS.lock()
                 && cache.len() < MAX_CACHED_LAYOUTS
             {
@@ -311,10 +339,10 @@ fn build_layout(
     world_roots: &[String],
     titles: &[String],
     plot_roots: &[String],
-    attribution: bool,
+    views: ViewOptions,
 ) -> Result<BuiltLayout, TelemetryError> {
     use rerun::log::LogMsg;
-    let layout = layout_for(world_roots, titles, plot_roots, attribution);
+    let layout = layout_for(world_roots, titles, plot_roots, views);
     let (scratch, storage) = RecordingStreamBuilder::new(APP_ID).memory()?;
     layout.blueprint.send(
         &scratch,
@@ -368,7 +396,11 @@ mod tests {
         let (rec, _storage) = RecordingStreamBuilder::new(APP_ID).memory().unwrap();
         let roots = vec!["built-once-test".to_string()];
         for i in 0..20 {
-            send_layout_for(&rec, &roots, &default_titles(&roots), &roots, i % 2 == 0).unwrap();
+            let views = ViewOptions {
+                attribution: i % 2 == 0,
+                ..ViewOptions::default()
+            };
+            send_layout_for(&rec, &roots, &default_titles(&roots), &roots, views).unwrap();
         }
         let cache = LAYOUTS.lock().unwrap();
         let ours = cache

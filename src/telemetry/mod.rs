@@ -247,15 +247,22 @@ pub fn open(
     recording_id: &str,
     roots: &[String],
 ) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
-    open_titled(sink, recording_id, roots, &default_titles(roots))
+    open_titled(
+        sink,
+        recording_id,
+        roots,
+        &default_titles(roots),
+        ViewOptions::default(),
+    )
 }
 
-/// [`open`] with the 3-D views titled (see [`view_titles`]).
+/// [`open`] with the 3-D views titled (see [`view_titles`]) and the views `views` asks for.
 pub fn open_titled(
     sink: &Sink,
     recording_id: &str,
     roots: &[String],
     titles: &[String],
+    views: ViewOptions,
 ) -> Result<(RecordingStream, Option<rerun::sink::MemorySinkStorage>), TelemetryError> {
     let builder = RecordingStreamBuilder::new(APP_ID).recording_id(recording_id.to_string());
     let (rec, storage) = match sink {
@@ -323,7 +330,7 @@ pub fn open_titled(
     };
     rec.set_log_time_enabled(false);
     rec.set_log_tick_enabled(false);
-    send_layout_with(&rec, roots, titles, roots)?;
+    send_layout_for(&rec, roots, titles, roots, views)?;
     Ok((rec, storage))
 }
 

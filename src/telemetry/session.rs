@@ -385,7 +385,14 @@ impl Session {
         );
         let labels: Vec<String> = self.lanes.iter().map(Lane::series_label).collect();
         let titles = super::view_titles(&labels, &roots);
-        super::send_layout_for(&self.rec, &roots, &titles, &plots, self.attribution)
+        let views = super::ViewOptions {
+            attribution: self.attribution,
+            fatigue: self
+                .lanes
+                .iter()
+                .any(|l| l.core.env().config().damage.fatigue),
+        };
+        super::send_layout_for(&self.rec, &roots, &titles, &plots, views)
     }
 
     fn drop_fork(&mut self) -> Result<bool, RecordError> {

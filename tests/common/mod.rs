@@ -297,6 +297,25 @@ pub fn blueprint_view_names(msgs: &[rerun::log::LogMsg]) -> Vec<String> {
     names
 }
 
+/// [`blueprint_view_names`] of the blueprint activated last: the layout a viewer opens with
+/// (a recording sends a default one when it opens and its lanes' own once they are known).
+pub fn active_blueprint_view_names(msgs: &[rerun::log::LogMsg]) -> Vec<String> {
+    let active = msgs
+        .iter()
+        .rev()
+        .find_map(|m| match m {
+            rerun::log::LogMsg::BlueprintActivationCommand(cmd) => Some(cmd.blueprint_id.clone()),
+            _ => None,
+        })
+        .expect("a blueprint is activated");
+    let ours: Vec<rerun::log::LogMsg> = msgs
+        .iter()
+        .filter(|m| matches!(m, rerun::log::LogMsg::ArrowMsg(store, _) if *store == active))
+        .cloned()
+        .collect();
+    blueprint_view_names(&ours)
+}
+
 /// Saves a small untrained LSTM checkpoint into `dir` as if trained in a world whose joints
 /// trigger at fatigue `threshold` and whose window is `context_len` steps.
 pub fn save_checkpoint_in_world(dir: &std::path::Path, threshold: f64, context_len: usize) {
