@@ -521,6 +521,8 @@ fn probe_cross_validates_several_seeds() {
         // z, raw obs, raw window × all steps, post-trigger steps.
         assert_eq!(run["condition"].as_array().unwrap().len(), 6);
         assert_eq!(run["joints"].as_array().unwrap().len(), 8);
+        // And each joint from the raw observation alone, the control for z's.
+        assert_eq!(run["joints_from_obs"].as_array().unwrap().len(), 8);
         for c in run["condition"].as_array().unwrap() {
             assert_eq!(c["folds"].as_array().unwrap().len(), 3, "{c}");
         }
