@@ -126,6 +126,27 @@ fn the_death_count_follows_the_condition() {
     assert!(paper.pending_deaths().is_empty() && paper.damage().fatigue_triggers());
 }
 
+/// A death is a damage onset for the probes (`first_onset_steps`), at the step the draw gave
+/// it, where fatigue triggers nothing: a world of dead actuators has no fatigue triggers.
+#[test]
+fn a_death_is_the_joints_damage_onset() {
+    let mut world = GaitConfig::world("dead-legs").expect("shipped world");
+    world.damage.condition = ConditionChoice::Fixed(Condition::Severe);
+    let mut env = AntEnv::new(world, 0).unwrap();
+    env.reset_with_seed(3);
+    let deaths = env.pending_deaths().to_vec();
+    for _ in 0..70 {
+        env.step(&[0.0; N_ACTUATORS]).unwrap();
+    }
+    let mut want = [None; N_ACTUATORS];
+    for d in &deaths {
+        want[d.actuator] = Some(d.step);
+    }
+    assert_eq!(deaths.len(), 4, "two legs die under severe");
+    assert_eq!(env.damage().first_onset_steps(), want);
+    assert_eq!(env.damage().first_trigger_steps(), [None; N_ACTUATORS]);
+}
+
 #[test]
 fn in_the_dead_legs_world_whole_legs_die_by_step_60() {
     for (condition, legs) in [

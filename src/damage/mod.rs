@@ -715,9 +715,23 @@ impl DamageState {
 
     /// Step at which each actuator first triggered by fatigue, if it did.
     pub fn first_trigger_steps(&self) -> [Option<usize>; N_ACTUATORS] {
+        self.first_steps(|kind| *kind == DamageEventKind::Trigger)
+    }
+
+    /// Each joint's damage onset: its first fatigue trigger or the world's killing it,
+    /// whichever came first — where the probes time detection from in every world (a world
+    /// of dead actuators has no fatigue triggers).
+    pub fn first_onset_steps(&self) -> [Option<usize>; N_ACTUATORS] {
+        self.first_steps(|kind| matches!(kind, DamageEventKind::Trigger | DamageEventKind::Dead))
+    }
+
+    fn first_steps(
+        &self,
+        counts: impl Fn(&DamageEventKind) -> bool,
+    ) -> [Option<usize>; N_ACTUATORS] {
         let mut steps = [None; N_ACTUATORS];
         for e in &self.events {
-            if e.kind == DamageEventKind::Trigger && steps[e.actuator].is_none() {
+            if counts(&e.kind) && steps[e.actuator].is_none() {
                 steps[e.actuator] = Some(e.step);
             }
         }

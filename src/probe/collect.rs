@@ -19,8 +19,10 @@ pub struct ProbeStep {
     /// Joint i is effectively damaged: triggered and its torque scale below 1.
     pub damaged: [bool; N_ACTUATORS],
     pub fatigue: [f64; N_ACTUATORS],
+    /// The episode's damage onset so far: the first fatigue trigger, or the first death the
+    /// world drew (`DamageState::first_onset_steps`).
     pub first_trigger: Option<usize>,
-    /// First fatigue-trigger step of each joint so far.
+    /// Each joint's onset so far (its fatigue trigger or its death).
     pub joint_triggers: [Option<usize>; N_ACTUATORS],
     /// Decrease in goal distance this step (m).
     pub progress: f64,
@@ -80,7 +82,8 @@ pub fn collect(
                 },
                 |record| {
                     for e in &record.events {
-                        if e.kind == crate::damage::DamageEventKind::Trigger {
+                        use crate::damage::DamageEventKind::{Dead, Trigger};
+                        if matches!(e.kind, Trigger | Dead) {
                             joint_triggers[e.actuator].get_or_insert(e.step);
                         }
                     }

@@ -77,7 +77,7 @@ pub fn onset_attribution(
                 },
                 |_| Ok::<(), ProbeError>(()),
             )?;
-            let firsts = lane.env().damage().first_trigger_steps();
+            let firsts = lane.env().damage().first_onset_steps();
             let Some((joint, first)) = firsts
                 .iter()
                 .enumerate()
