@@ -205,8 +205,9 @@ pub(crate) fn train_command(args: TrainArgs) -> Result<()> {
         train::check_ant(&opts)?;
         eprintln!(
             "note: training episodes end after {} steps (the config's env.max_episode_steps); \
-             eval, record, live, video and rollout run policies for 500 unless told otherwise",
-            opts.env.env.max_episode_steps
+             eval, record, live, video and rollout run its policies for {} unless told otherwise",
+            opts.env.env.max_episode_steps,
+            opts.env.run_step_limit()
         );
         // The task config at the top level, and the network and SAC settings the run would use.
         let mut resolved = serde_json::to_value(&opts.env)?;
