@@ -255,6 +255,61 @@ fn pause_speed_condition_and_reset_are_obeyed() {
     sim.shutdown().unwrap();
 }
 
+/// A model loaded from a world that ends elsewhere brings that world's step limit, unless the
+/// limit was moved off the old model's own.
+#[test]
+fn a_model_from_another_world_brings_its_step_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let (paper, short) = (dir.path().join("paper"), dir.path().join("short"));
+    checkpoint(&paper);
+    let mut world = GaitConfig::world("dead-legs").unwrap();
+    world.env.max_episode_steps = 40;
+    let net = NetConfig {
+        hidden: vec![16, 16],
+        z_dim: 4,
+        ..NetConfig::ant(EncoderKind::Lstm)
+    };
+    let record = TrainingRecord {
+        env: world,
+        sac: SacConfig::default(),
+        seed: 7,
+        steps_done: 0,
+        episodes_done: 0,
+        wall_time_s: 0.0,
+        imported_from: None,
+    };
+    SacModel::new(net, 1.0, 7, &Device::Cpu)
+        .unwrap()
+        .save(&short, &record)
+        .unwrap();
+    let (rec, _storage) =
+        gaitscope::telemetry::open(&gaitscope::telemetry::Sink::Memory, "limit", &live_roots())
+            .unwrap();
+    let sim = SimHandle::spawn(
+        rec,
+        LiveSetup {
+            step_limit: 500,
+            ..setup(&paper, LiveCondition::Severe)
+        },
+    )
+    .unwrap();
+    let load = |dir: &Path| {
+        let episodes = sim.snapshot().episodes;
+        sim.send(Command::Load {
+            slot: gaitscope::app::Slot::Main,
+            dir: dir.to_path_buf(),
+        });
+        sim.wait_for(WAIT, |s| s.episodes > episodes)
+    };
+    // The paper's own 500 → the short world's 40, and back.
+    assert_eq!(load(&short).step_limit, 40);
+    assert_eq!(load(&paper).step_limit, 500);
+    // A limit set by hand stays.
+    sim.send(Command::SetStepLimit(77));
+    assert_eq!(load(&short).step_limit, 77);
+    sim.shutdown().unwrap();
+}
+
 #[test]
 fn bad_settings_are_refused_before_anything_starts() {
     let dir = tempfile::tempdir().unwrap();

@@ -824,6 +824,16 @@ impl Sim {
     fn load(&mut self, slot: Slot, dir: PathBuf) -> Result<(), LiveError> {
         let actor = Actor::load(&dir)?;
         let mut actors = self.session.take_actors();
+        if slot == Slot::Main {
+            // A model from a world that ends elsewhere brings its world's limit, unless the
+            // limit had been moved off the old model's own (by hand or --max-steps).
+            let own = |a: &Actor| a.policy().map(|p| p.meta.env.run_step_limit());
+            if let (Some(old), Some(new)) = (actors.first().and_then(own), own(&actor))
+                && self.step_limit == old
+            {
+                self.step_limit = new;
+            }
+        }
         match slot {
             Slot::Main if actors.is_empty() => actors.push(actor),
             Slot::Main => actors[0] = actor,

@@ -35,8 +35,8 @@ pub(crate) struct LiveArgs {
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
     /// Truncate episodes after this many steps (default: the checkpoints' world's limit — 500
-    /// in the paper's world, dead-legs 1000, dead-legs-short 400; a model loaded later in the
-    /// panel keeps it).
+    /// in the paper's world, dead-legs 1000, dead-legs-short 400; a model loaded later from
+    /// another world brings its own, unless the limit was changed from the old model's).
     #[arg(long, value_name = "N")]
     max_steps: Option<usize>,
     /// Sample actions from the policy instead of taking its mean.
