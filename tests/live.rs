@@ -19,6 +19,11 @@ const WAIT: Duration = Duration::from_secs(20);
 
 /// A small untrained LSTM-encoder checkpoint: the loop's behaviour does not depend on skill.
 fn checkpoint(dir: &Path) {
+    checkpoint_in(dir, GaitConfig::default());
+}
+
+/// [`checkpoint`], trained in `world`.
+fn checkpoint_in(dir: &Path, world: GaitConfig) {
     let net = NetConfig {
         hidden: vec![16, 16],
         z_dim: 4,
@@ -26,7 +31,7 @@ fn checkpoint(dir: &Path) {
     };
     let model = SacModel::new(net, 1.0, 7, &Device::Cpu).unwrap();
     let record = TrainingRecord {
-        env: GaitConfig::default(),
+        env: world,
         sac: SacConfig::default(),
         seed: 7,
         steps_done: 0,
@@ -264,24 +269,7 @@ fn a_model_from_another_world_brings_its_step_limit() {
     checkpoint(&paper);
     let mut world = GaitConfig::world("dead-legs").unwrap();
     world.env.max_episode_steps = 40;
-    let net = NetConfig {
-        hidden: vec![16, 16],
-        z_dim: 4,
-        ..NetConfig::ant(EncoderKind::Lstm)
-    };
-    let record = TrainingRecord {
-        env: world,
-        sac: SacConfig::default(),
-        seed: 7,
-        steps_done: 0,
-        episodes_done: 0,
-        wall_time_s: 0.0,
-        imported_from: None,
-    };
-    SacModel::new(net, 1.0, 7, &Device::Cpu)
-        .unwrap()
-        .save(&short, &record)
-        .unwrap();
+    checkpoint_in(&short, world);
     let (rec, _storage) =
         gaitscope::telemetry::open(&gaitscope::telemetry::Sink::Memory, "limit", &live_roots())
             .unwrap();
