@@ -55,11 +55,12 @@ flags_of() {
   local flags=()
   [ "$world" = seeds ] || flags+=(--world "$world")
   case $model in
-    # Warm starts (train --init-from): all from the world's 500k baseline — told the damage,
-    # told nothing, or given an encoder whose z starts at zero weight — filling a 10,000-
-    # transition buffer with its policy before the first update.
+    # Warm starts (train --init-from): all from the world's 500k baseline, kept as
+    # baseline-500k-s0 while baseline-s0 trains on (the first warm pair's source, CRC and all) —
+    # told the damage, told nothing, or given an encoder whose z starts at zero weight —
+    # filling a 10,000-transition buffer with its policy before the first update.
     *-warm-*)
-      flags+=(--init-from "$runs_dir/$world/baseline-s0" --learning-starts 10000)
+      flags+=(--init-from "$runs_dir/$world/baseline-500k-s0" --learning-starts 10000)
       case $model in
         oracle-*) flags+=(--privileged damage) ;;
         encoder-lstm-aux-*) flags+=(--encoder lstm --aux dynamics) ;;
