@@ -127,16 +127,17 @@ pub fn run_live(
     note: &mut dyn FnMut(LaunchNote),
 ) -> Result<Result<SimReport, LiveError>, LaunchError> {
     let (roots, titles) = views(&launch.setup.checkpoint, launch.setup.compare.as_deref());
-    // The fatigue view where some model's world damages by fatigue (a checkpoint runs in its
-    // own world; one that cannot be read fails in the sim, which says why).
-    let shown = telemetry::ViewOptions {
-        fatigue: std::iter::once(&launch.setup.checkpoint)
+    // The views for the checkpoints' own worlds (a checkpoint that cannot be read fails in the
+    // sim, which says why; the default views meanwhile).
+    let worlds: Result<Vec<crate::config::GaitConfig>, _> =
+        std::iter::once(&launch.setup.checkpoint)
             .chain(&launch.setup.compare)
-            .any(|dir| {
-                crate::policy::checkpoint::read_meta(dir).map_or(true, |m| m.env.damage.fatigue)
-            }),
-        ..telemetry::ViewOptions::default()
-    };
+            .map(|dir| crate::policy::checkpoint::read_meta(dir).map(|m| m.env))
+            .collect();
+    let shown = worlds.map_or_else(
+        |_| telemetry::ViewOptions::default(),
+        telemetry::ViewOptions::for_worlds,
+    );
     let mut offered = launch.offered;
     for dir in std::iter::once(&launch.setup.checkpoint).chain(&launch.setup.compare) {
         if !offered.contains(dir) {

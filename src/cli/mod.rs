@@ -116,11 +116,15 @@ pub(crate) fn step_limit(
     actors: &[gaitscope::lane::Actor],
     requested: &GaitConfig,
 ) -> Result<usize> {
-    let worlds: Vec<(String, &GaitConfig)> = actors
+    let labels: Vec<String> = actors.iter().map(|a| a.label()).collect();
+    let worlds = actors
         .iter()
-        .map(|a| (a.label(), a.policy().map_or(requested, |p| &p.meta.env)))
-        .collect();
-    step_limit_of(given, &worlds, requested)
+        .map(|a| a.policy().map_or(requested, |p| &p.meta.env));
+    step_limit_of(
+        given,
+        labels.iter().map(String::as_str).zip(worlds),
+        requested,
+    )
 }
 
 /// [`step_limit`] for checkpoint folders (their checkpoint.json says their world).
@@ -128,22 +132,22 @@ pub(crate) fn step_limit_of_dirs<'a>(
     given: Option<usize>,
     dirs: impl IntoIterator<Item = &'a PathBuf>,
 ) -> Result<usize> {
+    let default = GaitConfig::default();
     if given.is_some() {
-        return step_limit_of(given, &[], &GaitConfig::default());
+        return step_limit_of(given, [], &default);
     }
-    let mut worlds = Vec::new();
+    let mut named = Vec::new();
     for dir in dirs {
         let meta = gaitscope::policy::checkpoint::read_meta(dir)?;
-        worlds.push((gaitscope::eval::model_label(dir), meta.env));
+        named.push((gaitscope::eval::model_label(dir), meta.env));
     }
-    let named: Vec<(String, &GaitConfig)> = worlds.iter().map(|(l, w)| (l.clone(), w)).collect();
-    step_limit_of(None, &named, &GaitConfig::default())
+    step_limit_of(None, named.iter().map(|(l, w)| (l.as_str(), w)), &default)
 }
 
 /// [`step_limit`] for models named by label and world.
-pub(crate) fn step_limit_of(
+pub(crate) fn step_limit_of<'a>(
     given: Option<usize>,
-    worlds: &[(String, &GaitConfig)],
+    worlds: impl IntoIterator<Item = (&'a str, &'a GaitConfig)>,
     requested: &GaitConfig,
 ) -> Result<usize> {
     if let Some(limit) = given {
@@ -152,11 +156,12 @@ pub(crate) fn step_limit_of(
         }
         return Ok(limit);
     }
-    let Some((first, first_world)) = worlds.first() else {
+    let mut worlds = worlds.into_iter();
+    let Some((first, first_world)) = worlds.next() else {
         return Ok(requested.run_step_limit());
     };
     let limit = first_world.run_step_limit();
-    if let Some((other, other_world)) = worlds.iter().find(|(_, w)| w.run_step_limit() != limit) {
+    if let Some((other, other_world)) = worlds.find(|(_, w)| w.run_step_limit() != limit) {
         bail!(
             "{first} runs to {limit} steps in its world ({}) and {other} to {} in its own ({}): \
              give --max-steps to run them to one limit",

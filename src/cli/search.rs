@@ -92,18 +92,15 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
             label.push('\'');
         }
         models.push(ModelId {
-            label: label.clone(),
+            label,
             path: dir.display().to_string(),
             model_crc32: meta.model_crc32,
         });
-        worlds.push((label, meta.env));
+        worlds.push(meta.env);
     }
     let max_steps = super::step_limit_of(
         args.max_steps,
-        &worlds
-            .iter()
-            .map(|(l, w)| (l.clone(), w))
-            .collect::<Vec<_>>(),
+        models.iter().map(|m| m.label.as_str()).zip(&worlds),
         &gaitscope::GaitConfig::default(),
     )?;
     let evaluator = PolicyEvaluator::new(

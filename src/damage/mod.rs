@@ -113,6 +113,14 @@ pub enum DamageEventKind {
     Dead,
 }
 
+impl DamageEventKind {
+    /// Whether the event is a joint's damage onset as the probes count it: a fatigue trigger or
+    /// the world's killing it (a person's changes are not the world's damage).
+    pub fn is_onset(&self) -> bool {
+        matches!(self, DamageEventKind::Trigger | DamageEventKind::Dead)
+    }
+}
+
 /// One entry of the damage log.
 ///
 /// `step` is the env step the event belongs to: a trigger during step `t` has `step = t` (it
@@ -722,7 +730,7 @@ impl DamageState {
     /// whichever came first — where the probes time detection from in every world (a world
     /// of dead actuators has no fatigue triggers).
     pub fn first_onset_steps(&self) -> [Option<usize>; N_ACTUATORS] {
-        self.first_steps(|kind| matches!(kind, DamageEventKind::Trigger | DamageEventKind::Dead))
+        self.first_steps(DamageEventKind::is_onset)
     }
 
     fn first_steps(

@@ -82,8 +82,7 @@ pub fn collect(
                 },
                 |record| {
                     for e in &record.events {
-                        use crate::damage::DamageEventKind::{Dead, Trigger};
-                        if matches!(e.kind, Trigger | Dead) {
+                        if e.kind.is_onset() {
                             joint_triggers[e.actuator].get_or_insert(e.step);
                         }
                     }

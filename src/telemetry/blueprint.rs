@@ -85,6 +85,18 @@ impl Default for ViewOptions {
     }
 }
 
+impl ViewOptions {
+    /// The views for lanes in `worlds`: the fatigue view where any of them damages by fatigue.
+    pub fn for_worlds<W: std::borrow::Borrow<crate::config::GaitConfig>>(
+        worlds: impl IntoIterator<Item = W>,
+    ) -> Self {
+        Self {
+            fatigue: worlds.into_iter().any(|w| w.borrow().damage.fatigue),
+            ..Self::default()
+        }
+    }
+}
+
 /// [`layout_with`], with the views `views` asks for.
 pub fn layout_for(
     world_roots: &[String],

@@ -182,13 +182,7 @@ pub fn record(
     // that stops on an error (a state refused at the episode's start, a fork that never came)
     // leaves no `.partial` behind. After the rename there is nothing left to remove.
     let _leftover = file.as_ref().map(|f| RemoveOnDrop(f.partial.clone()));
-    let views = super::ViewOptions {
-        fatigue: opts
-            .actors
-            .iter()
-            .any(|a| a.world(&opts.config).damage.fatigue),
-        ..super::ViewOptions::default()
-    };
+    let views = super::ViewOptions::for_worlds(opts.actors.iter().map(|a| a.world(&opts.config)));
     let (rec, storage) = super::open_titled(&sink, &recording_id, &roots, &titles, views)?;
     let specs = opts
         .actors

@@ -387,10 +387,7 @@ impl Session {
         let titles = super::view_titles(&labels, &roots);
         let views = super::ViewOptions {
             attribution: self.attribution,
-            fatigue: self
-                .lanes
-                .iter()
-                .any(|l| l.core.env().config().damage.fatigue),
+            ..super::ViewOptions::for_worlds(self.lanes.iter().map(|l| l.core.env().config()))
         };
         super::send_layout_for(&self.rec, &roots, &titles, &plots, views)
     }
