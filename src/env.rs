@@ -436,10 +436,16 @@ impl AntEnv {
         if !self.config.damage.fatigue {
             self.damage.set_fatigue_triggers(false);
         }
+        // A scenario whose rule is off damages the Ant alone: neither fatigue nor the world's
+        // deaths act beside it.
+        let mut scenario_alone = false;
         if let Some(scenario) = self.config.damage.scenario.clone() {
             use crate::damage::scenario::FatigueRule;
             match scenario.fatigue {
-                FatigueRule::Off => self.damage.set_fatigue_triggers(false),
+                FatigueRule::Off => {
+                    self.damage.set_fatigue_triggers(false);
+                    scenario_alone = true;
+                }
                 FatigueRule::On => self.damage.set_fatigue_triggers(true),
                 FatigueRule::OnWith(c) => {
                     self.damage.set_fatigue_triggers(true);
@@ -456,7 +462,7 @@ impl AntEnv {
             Some(dead) => {
                 // Drawn either way, so the episode's later draws do not depend on it.
                 let seed: u64 = self.rng.random();
-                if self.world_deaths {
+                if self.world_deaths && !scenario_alone {
                     dead.plan(condition, seed, &self.leg_actuators())
                 } else {
                     Vec::new()

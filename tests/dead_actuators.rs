@@ -126,6 +126,53 @@ fn the_death_count_follows_the_condition() {
     assert!(paper.pending_deaths().is_empty() && paper.damage().fatigue_triggers());
 }
 
+/// A scenario with the rule off damages the Ant alone (docs/scenarios.md: "only the scenario
+/// damages joints"): a dead world draws no deaths beside it. With the rule on, the world's
+/// deaths come as without a scenario, under the rule's condition.
+#[test]
+fn a_scenario_with_its_rule_off_is_the_only_damage_in_a_dead_world() {
+    let scenario = |fatigue: &str| {
+        gaitscope::damage::scenario::Scenario::from_json(
+            &format!(
+                r#"{{"name": "t", "fatigue": {fatigue}, "edits": [{{"step": 5, "joint": "hip_2", "scale": 0.0}}]}}"#
+            ),
+            "test",
+        )
+        .unwrap()
+    };
+    let mut world = dead_world(Condition::Severe);
+    world.damage.scenario = Some(scenario("false"));
+    let mut alone = AntEnv::new(world.clone(), 0).unwrap();
+    for seed in 0..20 {
+        alone.reset_with_seed(seed);
+        assert!(alone.pending_deaths().is_empty(), "seed {seed}: the world drew deaths");
+        for _ in 0..10 {
+            alone.step(&[0.5; N_ACTUATORS]).unwrap();
+        }
+        // Only hip_2, from step 5.
+        let dead: Vec<&str> = (0..N_ACTUATORS)
+            .filter(|&a| alone.damage().scale()[a] == 0.0)
+            .map(|a| alone.damage().joint_names()[a].as_str())
+            .collect();
+        assert_eq!(dead, ["hip_2"], "seed {seed}");
+    }
+    // The rule on, under severe: the world's deaths again (two to four units' worth each).
+    for rule in ["true", r#""severe""#] {
+        world.damage.scenario = Some(scenario(rule));
+        let mut with_world = AntEnv::new(world.clone(), 0).unwrap();
+        for seed in 0..20 {
+            with_world.reset_with_seed(seed);
+            let n = with_world.pending_deaths().len();
+            assert!((2..=4).contains(&n), "{rule}, seed {seed}: {n} deaths");
+        }
+    }
+    // Healthy under the rule: none drawn, as without a scenario.
+    world.damage.scenario = Some(scenario(r#""healthy""#));
+    let mut healthy = AntEnv::new(world, 0).unwrap();
+    healthy.reset_with_seed(0);
+    assert!(healthy.pending_deaths().is_empty());
+}
+
 /// A death is a damage onset for the probes (`first_onset_steps`), at the step the draw gave
 /// it, where fatigue triggers nothing: a world of dead actuators has no fatigue triggers.
 #[test]

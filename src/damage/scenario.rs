@@ -121,14 +121,15 @@ impl<'de> serde::Deserialize<'de> for StrictValue {
     }
 }
 
-/// Whether the fatigue rule runs during a scenario.
+/// Whether the world's own damage — the fatigue rule, and a dead world's drawn deaths — runs
+/// during a scenario (the file's `fatigue` field).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FatigueRule {
-    /// No fatigue triggers: only the scenario damages joints.
+    /// No fatigue triggers and no drawn deaths: only the scenario damages joints.
     Off,
-    /// Fatigue triggers as in training, under the episode's condition.
+    /// The world's damage as in training, under the episode's condition.
     On,
-    /// Fatigue triggers, under this condition whatever the episode's.
+    /// The world's damage, under this condition whatever the episode's.
     OnWith(Condition),
 }
 
