@@ -195,7 +195,7 @@ impl LegTorque {
         match self {
             LegTorque::Full => "stance · full torque",
             LegTorque::Reduced => "stance · torque lost",
-            LegTorque::Dead => "stance · a joint dead",
+            LegTorque::Dead => "stance · joint(s) dead",
             LegTorque::Pinned => "stance · pinned by hand",
         }
     }
