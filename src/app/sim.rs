@@ -827,7 +827,7 @@ impl Sim {
         if slot == Slot::Main {
             // A model from a world that ends elsewhere brings its world's limit, unless the
             // limit had been moved off the old model's own (by hand or --max-steps).
-            let own = |a: &Actor| a.policy().map(|p| p.meta.env.run_step_limit());
+            let own = |a: &Actor| a.trained_world().map(GaitConfig::run_step_limit);
             if let (Some(old), Some(new)) = (actors.first().and_then(own), own(&actor))
                 && self.step_limit == old
             {

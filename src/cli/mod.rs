@@ -119,7 +119,7 @@ pub(crate) fn step_limit(
     let labels: Vec<String> = actors.iter().map(|a| a.label()).collect();
     let worlds = actors
         .iter()
-        .map(|a| a.policy().map_or(requested, |p| &p.meta.env));
+        .map(|a| a.trained_world().unwrap_or(requested));
     step_limit_of(
         given,
         labels.iter().map(String::as_str).zip(worlds),

@@ -150,6 +150,11 @@ impl Actor {
         }
     }
 
+    /// The world a checkpoint was trained in (none for a built-in policy or a script).
+    pub fn trained_world(&self) -> Option<&GaitConfig> {
+        self.policy().map(|p| &p.meta.env)
+    }
+
     /// The world this actor runs in — the one rule, for every command: a checkpoint's own task
     /// (model, reward, damage model, context: it was trained on them) with the caller's
     /// condition, scenario and step limit; a built-in policy or a script runs in the requested
