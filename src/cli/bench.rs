@@ -171,6 +171,7 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
                 method: search::Method::Cma,
                 reference: false,
                 severity_budget: 1.0,
+                unit: search::Unit::Joint,
                 latest_onset: 100,
                 pushes: None,
                 evaluations,

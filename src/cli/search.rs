@@ -4,7 +4,7 @@ use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
 
-use super::values::MethodArg;
+use super::values::{MethodArg, UnitArg};
 use gaitscope::search::{self, ModelId, Objective, PolicyEvaluator, SearchOptions};
 
 #[derive(Args)]
@@ -55,6 +55,10 @@ pub(crate) struct SearchArgs {
     /// weighs about 9 N). Off unless given.
     #[arg(long, value_name = "N·S")]
     push_impulse: Option<f64>,
+    /// What one damage gene acts on: each joint its own scale and onset, or each leg one for
+    /// both its joints (as legs die in the dead-legs world; a dead leg costs 2 of the budget).
+    #[arg(long, value_enum, default_value_t = UnitArg::Joint)]
+    unit: UnitArg,
     /// The latest step a joint's damage (or the push) may start at.
     #[arg(long, default_value_t = 100)]
     latest_onset: usize,
@@ -68,8 +72,8 @@ pub(crate) struct SearchArgs {
     /// Worker threads (default: all cores); results do not depend on it.
     #[arg(long)]
     threads: Option<usize>,
-    /// Output folder (default search/MODEL[-vs-OTHER]-kK-METHOD-sSEED); an existing one of the
-    /// same search resumes.
+    /// Output folder (default search/MODEL[-vs-OTHER]-kK[-legs][-pushI]-METHOD-sSEED); an
+    /// existing one of the same search resumes.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
 }
@@ -123,6 +127,7 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
         method,
         reference: !args.no_reference,
         severity_budget: args.budget,
+        unit: args.unit.into(),
         latest_onset: args.latest_onset,
         pushes: args.push_impulse.map(|impulse| search::space::PushSpace {
             impulse,
@@ -153,8 +158,9 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
             .pushes
             .map(|p| format!("-push{}", p.impulse))
             .unwrap_or_default();
+        let legs = if opts.unit.is_joint() { "" } else { "-legs" };
         PathBuf::from("search").join(format!(
-            "{}{vs}-k{}{push}-{}-s{}",
+            "{}{vs}-k{}{legs}{push}-{}-s{}",
             opts.models[0].label,
             opts.severity_budget,
             method.name(),

@@ -7,7 +7,7 @@ use gaitscope::explain::Target;
 use gaitscope::policy::sb3::ImportEncoder;
 use gaitscope::policy::{AuxKind, EncoderKind, Privileged};
 use gaitscope::rollout::BuiltinPolicy;
-use gaitscope::search::Method;
+use gaitscope::search::{Method, Unit};
 use gaitscope::train::sac::UpdatePath;
 #[cfg(feature = "video")]
 use gaitscope::video::CameraMode;
@@ -144,6 +144,16 @@ mirror! {
     }
 }
 
+mirror! {
+    /// `search --unit`: what one damage gene acts on.
+    UnitArg => Unit {
+        /// Each joint its own scale and onset.
+        Joint,
+        /// Each leg one scale and onset for both its joints (a dead leg costs 2 of the budget).
+        Leg,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -168,6 +178,7 @@ mod tests {
         assert_eq!(names::<BuiltinArg>(), ["random", "zero"]);
         assert_eq!(names::<ImportEncoderArg>(), ["auto", "none", "lstm"]);
         assert_eq!(names::<TargetArg>(), ["z", "action"]);
+        assert_eq!(names::<UnitArg>(), ["joint", "leg"]);
         assert_eq!(
             EncoderKind::from(EncoderArg::MlpWindow),
             EncoderKind::MlpWindow

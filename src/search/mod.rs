@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 
 use crate::damage::N_ACTUATORS;
 use crate::eval::stats::Rate;
+pub use space::{Anatomy, Unit};
 use space::{PushSpace, Schedule, Space};
 
 /// Evaluations per search, at most.
@@ -110,7 +111,8 @@ pub struct EpisodeOutcome {
 /// Runs schedules: one list of outcomes per model (in the order of [`SearchOptions::models`]),
 /// one outcome per seed, in seed order.
 pub trait Evaluate: Sync {
-    fn joints(&self) -> &[String; N_ACTUATORS];
+    /// The Ant's joint and leg names the schedules are written and described in.
+    fn anatomy(&self) -> &Anatomy;
     fn evaluate(
         &self,
         schedule: &Schedule,
@@ -149,6 +151,9 @@ pub struct SearchOptions {
     /// Also run random search at the same budget, as the reference.
     pub reference: bool,
     pub severity_budget: f64,
+    /// What a damage gene acts on: a joint (the default; absent from search.json) or a leg.
+    #[serde(default, skip_serializing_if = "Unit::is_joint")]
+    pub unit: Unit,
     pub latest_onset: usize,
     /// One push per schedule as well, under this impulse budget (`--push-impulse`); absent
     /// from a search without pushes.
@@ -181,7 +186,7 @@ impl SearchOptions {
             && self.severity_budget <= space::MAX_SEVERITY)
         {
             return bad(format!(
-                "--budget must lie in (0, {}] (Σ(1 − scale) over the joints; 1 = one joint dead), got {}",
+                "--budget must lie in (0, {}] (Σ(1 − scale) over the joints; 1 = one joint dead, 2 one leg), got {}",
                 space::MAX_SEVERITY,
                 self.severity_budget
             ));
@@ -252,11 +257,16 @@ impl SearchOptions {
         Ok(())
     }
 
-    fn space(&self) -> Space {
+    /// The space the genes decode into, with `anatomy`'s legs where a gene damages a leg.
+    fn space(&self, anatomy: &Anatomy) -> Space {
         Space {
             severity_budget: self.severity_budget,
             latest_onset: self.latest_onset,
             pushes: self.pushes,
+            legs: match self.unit {
+                Unit::Joint => None,
+                Unit::Leg => Some(anatomy.legs.clone().map(|(_, actuators)| actuators)),
+            },
         }
     }
 
@@ -486,7 +496,7 @@ impl Run<'_> {
     /// `evaluations` candidates from `method`, best first at the end.
     fn search(&mut self, phase: Phase, method: Method) -> Result<Vec<Candidate>, SearchError> {
         let seeds = self.opts.search_seeds();
-        let space = self.opts.space();
+        let space = self.opts.space(self.evaluator.anatomy());
         let budget = self.opts.evaluations;
         let mut found = Vec::with_capacity(budget);
         match method {
@@ -501,12 +511,13 @@ impl Run<'_> {
             }
             Method::Cma => {
                 // CMA-ES from the budget spread evenly over the joints (the largest damage
-                // that needs no scaling down), onsets mid-range and a push (if any) in the
-                // middle of its ranges; a run that converges (or stalls on a flat stretch)
-                // before the budget restarts there with the next seed.
+                // that needs no scaling down: per leg the same per joint), onsets mid-range and
+                // a push (if any) in the middle of its ranges; a run that converges (or stalls
+                // on a flat stretch) before the budget restarts there with the next seed.
                 let even = (self.opts.severity_budget / N_ACTUATORS as f64).min(0.5);
+                let units = space.units().len();
                 let start: Vec<f64> = (0..space.genes())
-                    .map(|g| if g < N_ACTUATORS { even } else { 0.5 })
+                    .map(|g| if g < units { even } else { 0.5 })
                     .collect();
                 let mut restart = 0u64;
                 while found.len() < budget {
@@ -556,7 +567,7 @@ impl Run<'_> {
     /// budget is spent. The bar stays the start's, so slack never accumulates over steps.
     fn shrink(&mut self, start: &Candidate) -> Result<Shrunk, SearchError> {
         let seeds = self.opts.search_seeds();
-        let space = self.opts.space();
+        let space = self.opts.space(self.evaluator.anatomy());
         let slack = self.opts.shrink_slack as f64 / self.opts.episodes as f64;
         let target = success_part(self.opts.objective, &start.success) - slack;
         let mut current = start.clone();
@@ -626,7 +637,7 @@ pub struct Confirmed {
 #[derive(Debug, Clone)]
 pub struct SearchReport {
     pub options: SearchOptions,
-    pub joints: [String; N_ACTUATORS],
+    pub anatomy: Anatomy,
     /// Every candidate of the search (and of the reference), in evaluation order.
     pub searched: Vec<Candidate>,
     pub reference: Vec<Candidate>,
@@ -761,7 +772,7 @@ pub fn run(
     let worst = record_worst(opts, evaluator, &top[0], out)?;
     let mut report = SearchReport {
         options: opts.clone(),
-        joints: evaluator.joints().clone(),
+        anatomy: evaluator.anatomy().clone(),
         searched,
         reference,
         top,
@@ -805,17 +816,17 @@ fn record_worst(
     let Some(seed) = worst else {
         return Ok(None);
     };
-    let joints = evaluator.joints();
-    let scenario = top
-        .search
-        .schedule
-        .scenario_json(&format!("search-{}", top.name), "", joints);
+    let anatomy = evaluator.anatomy();
+    let scenario =
+        top.search
+            .schedule
+            .scenario_json(&format!("search-{}", top.name), "", &anatomy.joints);
     let caption = format!(
         "Seed {seed}, the worst of top-1's {} held-out episodes under `{}.json` \
          ({}), found by `gaitscope search` ({}, budget {}). Held-out success: {}.",
         held[0].len(),
         top.name,
-        top.search.schedule.describe(joints),
+        top.search.schedule.describe(anatomy),
         top.search.method.name(),
         opts.severity_budget,
         opts.models
@@ -941,13 +952,13 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
             "gaitscope search ({}, budget {}): {what}; {}; held-out success {}",
             c.search.method.name(),
             o.severity_budget,
-            c.search.schedule.describe(&report.joints),
+            c.search.schedule.describe(&report.anatomy),
             c.rates.iter().map(pct).collect::<Vec<_>>().join(" vs ")
         );
         let json = c.search.schedule.scenario_json(
             &format!("search-{}", c.name),
             &description,
-            &report.joints,
+            &report.anatomy.joints,
         );
         let path = out.join(format!("{}.json", c.name));
         let text = serde_json::to_string_pretty(&json).unwrap_or_default() + "\n";
@@ -998,7 +1009,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
     let mut md = String::new();
     md.push_str(&format!("# gaitscope search: {what}\n\n"));
     md.push_str(&format!(
-        "Models: {}. World `{}`. Damage: per joint a scale in [0, 1] from an onset step ≤ {}, \
+        "Models: {}. World `{}`. Damage: per {} a scale in [0, 1] from an onset step ≤ {}, \
          Σ(1 − scale) ≤ {} (fatigue off){}. {} evaluations of {} by {}{}, each on the same {} \
          search seeds (from {}), step limit {}. Score: {}. The top {} re-run on {} held-out seeds \
          (from {}: `gaitscope eval --scenario FILE --episodes {} --seed {} --max-steps {}` gives \
@@ -1009,6 +1020,10 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
             .collect::<Vec<_>>()
             .join(", "),
         o.world,
+        match o.unit {
+            Unit::Joint => "joint",
+            Unit::Leg => "leg (both its joints)",
+        },
         o.latest_onset,
         o.severity_budget,
         match &o.pushes {
@@ -1056,7 +1071,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
             } else {
                 c.search.method.name().to_string()
             },
-            c.search.schedule.describe(&report.joints),
+            c.search.schedule.describe(&report.anatomy),
             c.search.severity,
             c.search.score,
             c.search
@@ -1104,7 +1119,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
     ));
     md.push_str(&format!(
         "**Minimal counterexample** (`minimal.json`): {} after {} shrink evaluations{}, from top-1's {}.\n\n",
-        report.shrunk.candidate.schedule.describe(&report.joints),
+        report.shrunk.candidate.schedule.describe(&report.anatomy),
         report.shrunk.evaluations,
         if report.shrunk.minimal {
             ": no single further reduction (drop a joint or the push, raise a scale by 0.1, halve \
@@ -1112,7 +1127,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         } else {
             " (the shrink budget ran out: it may shrink further)"
         },
-        report.top[0].search.schedule.describe(&report.joints),
+        report.top[0].search.schedule.describe(&report.anatomy),
     ));
     if report.options.shrink_slack > 0 {
         md.push_str(&format!(
@@ -1140,7 +1155,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
 /// it in its own world on the seeds, in lockstep batches, through eval's stepping.
 pub struct PolicyEvaluator {
     actors: Vec<(String, crate::lane::Actor)>,
-    joints: [String; N_ACTUATORS],
+    anatomy: Anatomy,
     step_seconds: f64,
     max_steps: usize,
     pool: rayon::ThreadPool,
@@ -1159,7 +1174,18 @@ impl PolicyEvaluator {
         }
         let world = actors[0].1.world(&crate::config::GaitConfig::default());
         let env = crate::env::AntEnv::new(world, 0).map_err(crate::eval::EvalError::Env)?;
-        let joints = env.damage().joint_names().clone();
+        let pairs: [[usize; 2]; crate::env::N_LEGS] =
+            env.leg_actuators().try_into().map_err(|pairs: Vec<_>| {
+                SearchError::Options(format!(
+                    "the model's legs do not each have a hip and an ankle ({} of {} do)",
+                    pairs.len(),
+                    crate::env::N_LEGS
+                ))
+            })?;
+        let anatomy = Anatomy {
+            joints: env.damage().joint_names().clone(),
+            legs: std::array::from_fn(|l| (env.leg_names()[l].clone(), pairs[l])),
+        };
         let step_seconds = env.dt();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads.max(1))
@@ -1167,7 +1193,7 @@ impl PolicyEvaluator {
             .map_err(|e| SearchError::Options(format!("thread pool: {e}")))?;
         Ok(PolicyEvaluator {
             actors,
-            joints,
+            anatomy,
             step_seconds,
             max_steps,
             pool,
@@ -1206,8 +1232,8 @@ impl PolicyEvaluator {
 }
 
 impl Evaluate for PolicyEvaluator {
-    fn joints(&self) -> &[String; N_ACTUATORS] {
-        &self.joints
+    fn anatomy(&self) -> &Anatomy {
+        &self.anatomy
     }
 
     fn record(
@@ -1238,7 +1264,7 @@ impl Evaluate for PolicyEvaluator {
         schedule: &Schedule,
         seeds: &[u64],
     ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
-        let json = schedule.scenario_json("search-candidate", "", &self.joints);
+        let json = schedule.scenario_json("search-candidate", "", &self.anatomy.joints);
         let requested = self.requested(&json, "search candidate")?;
         let case = crate::eval::Case::scenario("search-candidate");
         let mut all = Vec::new();
@@ -1279,17 +1305,14 @@ mod tests {
     /// step 50; otherwise it succeeds, ending nearer the goal the less hip_2 is damaged and the
     /// later (a slope for the distance tie-break, as a real policy's would be).
     struct Planted {
-        joints: [String; N_ACTUATORS],
+        anatomy: Anatomy,
         calls: AtomicUsize,
     }
 
     impl Planted {
         fn new() -> Self {
             Planted {
-                joints: [
-                    "hip_4", "ankle_4", "hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3",
-                ]
-                .map(String::from),
+                anatomy: Anatomy::ant(),
                 calls: AtomicUsize::new(0),
             }
         }
@@ -1303,8 +1326,8 @@ mod tests {
     }
 
     impl Evaluate for Planted {
-        fn joints(&self) -> &[String; N_ACTUATORS] {
-            &self.joints
+        fn anatomy(&self) -> &Anatomy {
+            &self.anatomy
         }
         fn evaluate(
             &self,
@@ -1343,6 +1366,7 @@ mod tests {
             method,
             reference: false,
             severity_budget: 1.0,
+            unit: Unit::Joint,
             latest_onset: 100,
             pushes: None,
             evaluations,
@@ -1390,7 +1414,7 @@ mod tests {
                 let s = &shrunk.candidate.schedule;
                 assert!(Planted::fails(s), "{s:?}");
                 assert_eq!(s.damaged().collect::<Vec<_>>(), vec![HIP_2], "{s:?}");
-                for r in options(method, budget).space().reductions(s) {
+                for r in options(method, budget).space(&Anatomy::ant()).reductions(s) {
                     assert!(!Planted::fails(&r), "{r:?} still fails");
                 }
                 // Every evaluation is one line, in order.
@@ -1406,6 +1430,84 @@ mod tests {
         assert!(hits[1].is_none_or(|r| r > cma), "{hits:?}");
     }
 
+    /// A planted leg failure: every episode fails exactly when back_leg (hip_3 and ankle_3)
+    /// runs below 0.3 from before step 50 — what a search by legs looks for in one gene.
+    struct PlantedLeg(Planted);
+
+    const BACK_LEG: [usize; 2] = [6, 7];
+
+    impl PlantedLeg {
+        fn fails(s: &Schedule) -> bool {
+            BACK_LEG
+                .iter()
+                .all(|&i| s.scales[i] < 0.3 && s.onsets[i] < 50)
+        }
+    }
+
+    impl Evaluate for PlantedLeg {
+        fn anatomy(&self) -> &Anatomy {
+            &self.0.anatomy
+        }
+        fn evaluate(
+            &self,
+            s: &Schedule,
+            seeds: &[u64],
+        ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
+            self.0.calls.fetch_add(1, Ordering::SeqCst);
+            let d = (1.0 - s.scales[BACK_LEG[0]]) * (1.0 - s.onsets[BACK_LEG[0]] as f64 / 101.0);
+            Ok(planted_outcomes(seeds, Self::fails(s), 3.0 * d))
+        }
+    }
+
+    #[test]
+    fn a_search_by_legs_finds_a_dead_leg_and_shrinks_to_it() {
+        let opts = SearchOptions {
+            unit: Unit::Leg,
+            severity_budget: 2.0,
+            ..options(Method::Cma, 200)
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let planted = PlantedLeg(Planted::new());
+        let report = run(&opts, &planted, dir.path()).unwrap();
+        // Every candidate damages whole legs, within the budget (a leg costs 2 at scale 0).
+        for c in &report.searched {
+            assert!(c.severity <= 2.0 + 1e-9);
+            for (_, [a, b]) in Anatomy::ant().legs {
+                let s = &c.schedule;
+                assert_eq!((s.scales[a], s.onsets[a]), (s.scales[b], s.onsets[b]));
+            }
+        }
+        let best = &report.top[0].search.schedule;
+        assert!(PlantedLeg::fails(best), "{best:?}");
+        let shrunk = &report.shrunk.candidate.schedule;
+        assert!(
+            report.shrunk.minimal && PlantedLeg::fails(shrunk),
+            "{shrunk:?}"
+        );
+        assert_eq!(shrunk.damaged().collect::<Vec<_>>(), BACK_LEG, "{shrunk:?}");
+        for r in opts.space(&Anatomy::ant()).reductions(shrunk) {
+            assert!(!PlantedLeg::fails(&r), "{r:?} still fails");
+        }
+        // Described and written as the leg; the summary says what a gene acted on.
+        assert!(shrunk.describe(&Anatomy::ant()).starts_with("back_leg "));
+        let summary = std::fs::read_to_string(dir.path().join("summary.md")).unwrap();
+        assert!(
+            summary.contains("Damage: per leg (both its joints)"),
+            "{summary}"
+        );
+        assert!(
+            summary.contains("`minimal.json` | shrunk | back_leg "),
+            "{summary}"
+        );
+        let written: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join("search.json")).unwrap())
+                .unwrap();
+        assert_eq!(written["unit"], "leg");
+        // A search by joints writes no unit: the folders of earlier searches resume unchanged.
+        let joints = serde_json::to_value(options(Method::Cma, 200)).unwrap();
+        assert!(joints.get("unit").is_none());
+    }
+
     /// A planted push failure: every episode fails exactly when the torso is pushed with at
     /// least 15 N·s before step 50, whatever the joints; nearer the goal the weaker the push.
     struct PlantedPush(Planted);
@@ -1419,8 +1521,8 @@ mod tests {
     }
 
     impl Evaluate for PlantedPush {
-        fn joints(&self) -> &[String; N_ACTUATORS] {
-            &self.0.joints
+        fn anatomy(&self) -> &Anatomy {
+            &self.0.anatomy
         }
         fn evaluate(
             &self,
@@ -1464,7 +1566,7 @@ mod tests {
         assert!(report.shrunk.minimal);
         assert!(PlantedPush::fails(s), "{s:?}");
         assert_eq!(s.damaged().count(), 0, "{s:?}");
-        for r in opts.space().reductions(s) {
+        for r in opts.space(&Anatomy::ant()).reductions(s) {
             assert!(!PlantedPush::fails(&r), "{r:?} still fails");
         }
         // The written scenario carries the push; the summary says pushes were searched.
@@ -1489,8 +1591,8 @@ mod tests {
     struct PlantedChaos(Planted);
 
     impl Evaluate for PlantedChaos {
-        fn joints(&self) -> &[String; N_ACTUATORS] {
-            &self.0.joints
+        fn anatomy(&self) -> &Anatomy {
+            &self.0.anatomy
         }
         fn evaluate(
             &self,

@@ -1,14 +1,16 @@
-//! The damage schedules `gaitscope search` looks through: per joint a torque scale in [0, 1]
-//! from an onset step on, under a severity budget Σ(1 − scale) ≤ K, and optionally one push
-//! (a body, a horizontal force, how long, when) under an impulse budget; written as scenario
-//! files (docs/scenarios.md) so every command replays them unchanged.
+//! The damage schedules `gaitscope search` looks through: per joint (or per leg) a torque scale
+//! in [0, 1] from an onset step on, under a severity budget Σ(1 − scale) ≤ K over the joints,
+//! and optionally one push (a body, a horizontal force, how long, when) under an impulse
+//! budget; written as scenario files (docs/scenarios.md) so every command replays them
+//! unchanged.
 
 use serde::{Deserialize, Serialize};
 
 use crate::damage::MAX_PUSH_NEWTONS;
 use crate::damage::N_ACTUATORS;
+use crate::env::N_LEGS;
 
-/// Genes per schedule without a push: a damage and an onset per joint.
+/// Genes per schedule of joints without a push: a damage and an onset per joint.
 pub const GENES: usize = 2 * N_ACTUATORS;
 /// Genes of the searched push, after the joints': body, heading, impulse, length, onset.
 pub const PUSH_GENES: usize = 5;
@@ -27,6 +29,54 @@ pub const PUSH_BODIES: [&str; 5] = [
 ];
 /// The longest searched push, in env steps (half a second in Ant-v4): a shove, not a wind.
 pub const MAX_SEARCH_PUSH_STEPS: usize = 10;
+
+/// What one damage gene acts on (`search --unit`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Unit {
+    /// Each joint its own scale and onset.
+    #[default]
+    Joint,
+    /// Each leg one scale and one onset for both its joints, as legs die in the dead-legs
+    /// world: a dead leg costs 2 of the budget.
+    Leg,
+}
+
+impl Unit {
+    pub fn is_joint(&self) -> bool {
+        *self == Unit::Joint
+    }
+}
+
+/// The Ant's names: its joints in actuator order, and each leg with the actuators of its hip and
+/// ankle (what a schedule is described in, and what a leg unit damages).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Anatomy {
+    pub joints: [String; N_ACTUATORS],
+    pub legs: [(String, [usize; 2]); N_LEGS],
+}
+
+impl Anatomy {
+    /// Ant-v4's, as its model declares them: actuators hip_4, ankle_4, hip_1, ankle_1, hip_2,
+    /// ankle_2, hip_3, ankle_3; legs front_left (hip_1, ankle_1), front_right (2), back (3),
+    /// right_back (4). A policy's evaluator reads its env's (the same, tested); synthetic ones
+    /// take this.
+    pub fn ant() -> Self {
+        let joints = [
+            "hip_4", "ankle_4", "hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3",
+        ];
+        let legs = [
+            ("front_left_leg", [2, 3]),
+            ("front_right_leg", [4, 5]),
+            ("back_leg", [6, 7]),
+            ("right_back_leg", [0, 1]),
+        ];
+        Anatomy {
+            joints: joints.map(String::from),
+            legs: legs.map(|(name, a)| (name.to_string(), a)),
+        }
+    }
+}
 
 /// One push of a schedule: a horizontal force on a body, from `onset` for `steps` env steps.
 /// Whole newtons and whole degrees, so a written scenario is exactly what ran.
@@ -90,13 +140,30 @@ impl Schedule {
         (0..N_ACTUATORS).filter(|&i| self.scales[i] < 1.0)
     }
 
-    /// `hip_2 0.12 @ 31, ankle_4 0.5 @ 0, push torso 420 N toward 135° for 3 steps @ 60`, or
-    /// `healthy`.
-    pub fn describe(&self, joints: &[String; N_ACTUATORS]) -> String {
-        let mut parts: Vec<String> = self
-            .damaged()
-            .map(|i| format!("{} {} @ {}", joints[i], self.scales[i], self.onsets[i]))
-            .collect();
+    /// `hip_2 0.12 @ 31, back_leg 0 @ 40, push torso 420 N toward 135° for 3 steps @ 60`, or
+    /// `healthy`: a leg whose joints share one scale and onset is named as the leg.
+    pub fn describe(&self, anatomy: &Anatomy) -> String {
+        let mut named = [false; N_ACTUATORS];
+        let mut parts = Vec::new();
+        for i in self.damaged() {
+            if named[i] {
+                continue;
+            }
+            let leg = anatomy.legs.iter().find(|(_, a)| {
+                a.contains(&i)
+                    && a.iter().all(|&j| {
+                        (self.scales[j], self.onsets[j]) == (self.scales[i], self.onsets[i])
+                    })
+            });
+            let name = match leg {
+                Some((leg, actuators)) => {
+                    actuators.iter().for_each(|&j| named[j] = true);
+                    leg
+                }
+                None => &anatomy.joints[i],
+            };
+            parts.push(format!("{name} {} @ {}", self.scales[i], self.onsets[i]));
+        }
         if let Some(p) = &self.push {
             parts.push(format!(
                 "push {} {} N toward {}° for {} step{} @ {}",
@@ -160,12 +227,14 @@ impl PushSpace {
     }
 }
 
-/// Where schedules live: the budget K, the latest onset step, and pushes if searched.
+/// Where schedules live: the budget K, the latest onset step, pushes if searched, and the legs
+/// (their actuators) when a gene damages a whole leg.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Space {
     pub severity_budget: f64,
     pub latest_onset: usize,
     pub pushes: Option<PushSpace>,
+    pub legs: Option<[[usize; 2]; N_LEGS]>,
 }
 
 /// `x` folded into [0, 1] by reflection at 0 and 1 (a box constraint CMA-ES can move across
@@ -179,9 +248,23 @@ fn reflect(x: f64) -> f64 {
 }
 
 impl Space {
-    /// Genes per genome: the joints', then the push's where pushes are searched.
+    /// The actuators each damage gene acts on, in gene order: one joint each, or one leg each.
+    pub fn units(&self) -> Vec<Vec<usize>> {
+        match &self.legs {
+            Some(legs) => legs.iter().map(|l| l.to_vec()).collect(),
+            None => (0..N_ACTUATORS).map(|i| vec![i]).collect(),
+        }
+    }
+
+    /// Genes per genome: a damage per unit, an onset per unit, then the push's where pushes are
+    /// searched.
     pub fn genes(&self) -> usize {
-        GENES + if self.pushes.is_some() { PUSH_GENES } else { 0 }
+        self.push_gene() + if self.pushes.is_some() { PUSH_GENES } else { 0 }
+    }
+
+    /// Where the push's genes start.
+    fn push_gene(&self) -> usize {
+        2 * self.units().len()
     }
 
     /// An onset gene (folded into [0, 1]) as a step in [0, latest onset].
@@ -191,14 +274,21 @@ impl Space {
 
     /// A genome (any reals; [`Space::genes`] of them: damages, onsets, then the push's) as a
     /// schedule within the budgets: each gene folded into [0, 1]; damages scaled down together
-    /// when their sum exceeds K, then floored to [`SCALE_STEP`] (so the budget holds after
-    /// rounding); the push's impulse a fraction of its budget, floored to whole newtons.
+    /// when their sum over the joints (a leg's counts twice) exceeds K, then floored to
+    /// [`SCALE_STEP`] (so the budget holds after rounding); the push's impulse a fraction of its
+    /// budget, floored to whole newtons.
     pub fn decode(&self, genome: &[f64]) -> Schedule {
-        let mut damage = [0.0; N_ACTUATORS];
-        for (d, &g) in damage.iter_mut().zip(genome) {
-            *d = reflect(g);
-        }
-        let total: f64 = damage.iter().sum();
+        let units = self.units();
+        let mut damage: Vec<f64> = units
+            .iter()
+            .enumerate()
+            .map(|(k, _)| reflect(genome.get(k).copied().unwrap_or(0.0)))
+            .collect();
+        let total: f64 = units
+            .iter()
+            .zip(&damage)
+            .map(|(u, d)| u.len() as f64 * d)
+            .sum();
         if total > self.severity_budget {
             let shrink = self.severity_budget / total;
             for d in &mut damage {
@@ -206,13 +296,18 @@ impl Space {
             }
         }
         let mut schedule = Schedule::healthy();
-        for (i, d) in damage.iter().enumerate() {
+        for (k, (unit, d)) in units.iter().zip(&damage).enumerate() {
             let steps = (d / SCALE_STEP + 1e-9).floor();
-            schedule.scales[i] = round_scale(1.0 - steps * SCALE_STEP);
-            schedule.onsets[i] = self.onset(genome.get(N_ACTUATORS + i).copied().unwrap_or(0.0));
+            let scale = round_scale(1.0 - steps * SCALE_STEP);
+            let onset = self.onset(genome.get(units.len() + k).copied().unwrap_or(0.0));
+            for &i in unit {
+                schedule.scales[i] = scale;
+                schedule.onsets[i] = onset;
+            }
         }
         if let Some(space) = self.pushes {
-            let gene = |k: usize| reflect(genome.get(GENES + k).copied().unwrap_or(0.0));
+            let first = self.push_gene();
+            let gene = |k: usize| reflect(genome.get(first + k).copied().unwrap_or(0.0));
             let body = ((gene(0) * PUSH_BODIES.len() as f64) as usize).min(PUSH_BODIES.len() - 1);
             let heading_deg = ((gene(1) * 360.0) as u32).min(359);
             let steps = 1
@@ -228,23 +323,30 @@ impl Space {
                     heading_deg,
                     newtons: newtons.floor() as u32,
                     steps,
-                    onset: self.onset(genome.get(GENES + 4).copied().unwrap_or(0.0)),
+                    onset: self.onset(genome.get(first + 4).copied().unwrap_or(0.0)),
                 });
             }
         }
         schedule
     }
 
-    /// The single reductions of a schedule a shrinker tries, least damage first: drop a joint
-    /// (scale → 1) or the push, raise a scale by 0.1 or halve the push's force, start a joint
-    /// or the push 10 % of the latest onset later.
+    /// The single reductions of a schedule a shrinker tries, least damage first: drop a unit
+    /// (a joint, or a leg: scale → 1) or the push, raise a unit's scale by 0.1 or halve the
+    /// push's force, start a unit or the push 10 % of the latest onset later.
     pub fn reductions(&self, s: &Schedule) -> Vec<Schedule> {
         let mut out = Vec::new();
         let later = (self.latest_onset / 10).max(1);
-        for i in s.damaged() {
+        let damaged: Vec<Vec<usize>> = self
+            .units()
+            .into_iter()
+            .filter(|u| u.iter().any(|&i| s.scales[i] < 1.0))
+            .collect();
+        for unit in &damaged {
             let mut dropped = s.clone();
-            dropped.scales[i] = 1.0;
-            dropped.onsets[i] = 0;
+            for &i in unit {
+                dropped.scales[i] = 1.0;
+                dropped.onsets[i] = 0;
+            }
             out.push(dropped);
         }
         if s.push.is_some() {
@@ -253,10 +355,12 @@ impl Space {
                 ..s.clone()
             });
         }
-        for i in s.damaged() {
-            if s.scales[i] < 0.9 {
+        for unit in &damaged {
+            if unit.iter().all(|&i| s.scales[i] < 0.9) {
                 let mut raised = s.clone();
-                raised.scales[i] = round_scale(s.scales[i] + 0.1);
+                for &i in unit {
+                    raised.scales[i] = round_scale(s.scales[i] + 0.1);
+                }
                 out.push(raised);
             }
         }
@@ -268,10 +372,15 @@ impl Space {
             });
             out.push(halved);
         }
-        for i in s.damaged() {
-            if s.onsets[i] + later <= self.latest_onset {
+        for unit in &damaged {
+            if unit
+                .iter()
+                .all(|&i| s.onsets[i] + later <= self.latest_onset)
+            {
                 let mut delayed = s.clone();
-                delayed.onsets[i] += later;
+                for &i in unit {
+                    delayed.onsets[i] += later;
+                }
                 out.push(delayed);
             }
         }
@@ -300,13 +409,6 @@ fn round_scale(s: f64) -> f64 {
 mod tests {
     use super::*;
 
-    fn joints() -> [String; N_ACTUATORS] {
-        [
-            "hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3", "hip_4", "ankle_4",
-        ]
-        .map(String::from)
-    }
-
     /// `n` genes uniform in [−spread, spread] from a 64-bit LCG (genes outside [0, 1] test the
     /// reflection).
     fn genome(rng: &mut u64, n: usize, spread: f64) -> Vec<f64> {
@@ -326,6 +428,7 @@ mod tests {
             severity_budget: 1.5,
             latest_onset: 100,
             pushes: None,
+            legs: None,
         };
         let mut rng = 12345u64;
         for _ in 0..2000 {
@@ -348,6 +451,7 @@ mod tests {
             severity_budget: 1.0,
             latest_onset: 99,
             pushes: None,
+            legs: None,
         };
         // Damages 0.8 and 0.6 (1.4, reflected from 1.4) sum to 1.4 > 1: scaled by 1/1.4.
         let mut genome = vec![0.0; GENES];
@@ -367,15 +471,15 @@ mod tests {
     #[test]
     fn scenario_names_each_damaged_joint_once() {
         let mut s = Schedule::healthy();
-        s.scales[2] = 0.2;
-        s.onsets[2] = 30;
-        let v = s.scenario_json("x", "y", &joints());
+        s.scales[4] = 0.2;
+        s.onsets[4] = 30;
+        let v = s.scenario_json("x", "y", &Anatomy::ant().joints);
         assert_eq!(v["fatigue"], false);
         assert_eq!(
             v["edits"],
             serde_json::json!([{"step": 30, "joint": "hip_2", "scale": 0.2}])
         );
-        assert_eq!(s.describe(&joints()), "hip_2 0.2 @ 30");
+        assert_eq!(s.describe(&Anatomy::ant()), "hip_2 0.2 @ 30");
     }
 
     #[test]
@@ -384,6 +488,7 @@ mod tests {
             severity_budget: 2.0,
             latest_onset: 100,
             pushes: None,
+            legs: None,
         };
         let mut s = Schedule::healthy();
         s.scales[0] = 0.05;
@@ -409,6 +514,7 @@ mod tests {
                 impulse,
                 step_seconds: 0.05,
             }),
+            legs: None,
         }
     }
 
@@ -435,11 +541,11 @@ mod tests {
         assert!((p.impulse(0.05) - 30.0).abs() < 1e-9);
         assert_eq!(s.severity(), 0.0); // a push spends its own budget, not the joints'
         assert_eq!(
-            s.describe(&joints()),
+            s.describe(&Anatomy::ant()),
             "push front_left_leg 200 N toward 90° for 3 steps @ 50"
         );
         // The scenario file carries the same push, and the scenario reader accepts it.
-        let v = s.scenario_json("x", "y", &joints());
+        let v = s.scenario_json("x", "y", &Anatomy::ant().joints);
         assert_eq!(
             v["edits"],
             serde_json::json!([{"step": 50, "push": {"body": "front_left_leg", "force": [0.0, 200.0, 0.0], "steps": 3}}])
@@ -512,5 +618,84 @@ mod tests {
         assert_eq!(r[3].push.as_ref().unwrap().newtons, 150);
         assert_eq!(r[5].push.as_ref().unwrap().onset, 29);
         assert_eq!(r[5].scales, s.scales);
+    }
+
+    fn leg_space(budget: f64) -> Space {
+        Space {
+            severity_budget: budget,
+            latest_onset: 100,
+            pushes: None,
+            legs: Some(Anatomy::ant().legs.map(|(_, a)| a)),
+        }
+    }
+
+    #[test]
+    fn a_leg_gene_damages_both_joints_and_costs_both() {
+        let space = leg_space(2.0);
+        assert_eq!(space.genes(), 8);
+        // Leg 2 (back_leg: hip_3, ankle_3 = actuators 6, 7) at damage 1: 2 of the budget of 2.
+        let mut genes = vec![0.0; 8];
+        genes[2] = 1.0;
+        genes[4 + 2] = 0.4; // onset 0.4 · 101 → 40
+        let s = space.decode(&genes);
+        assert_eq!(s.scales, [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0]);
+        assert_eq!(s.onsets, [0, 0, 0, 0, 0, 0, 40, 40]);
+        assert_eq!(s.severity(), 2.0);
+        assert_eq!(s.describe(&Anatomy::ant()), "back_leg 0 @ 40");
+        // Two legs at 0.8 cost 3.2 > 2: both scaled by 2 / 3.2 to damage 0.5.
+        genes[2] = 0.8;
+        genes[0] = 0.8;
+        let s = space.decode(&genes);
+        assert_eq!(s.scales[2..4], [0.5, 0.5]); // front_left_leg: hip_1, ankle_1
+        assert_eq!(s.scales[6..8], [0.5, 0.5]);
+        assert_eq!(s.severity(), 2.0);
+        // Random genomes: the budget holds and a leg's joints never part.
+        let mut rng = 777u64;
+        for _ in 0..2000 {
+            let s = space.decode(&genome(&mut rng, 8, 4.0));
+            assert!(s.severity() <= 2.0 + 1e-9, "{s:?}");
+            for (_, [a, b]) in Anatomy::ant().legs {
+                assert_eq!((s.scales[a], s.onsets[a]), (s.scales[b], s.onsets[b]));
+            }
+        }
+    }
+
+    #[test]
+    fn a_leg_is_dropped_raised_and_delayed_whole() {
+        let space = leg_space(4.0);
+        let mut s = Schedule::healthy();
+        for i in [0, 1] {
+            s.scales[i] = 0.2; // right_back_leg
+            s.onsets[i] = 30;
+        }
+        let r = space.reductions(&s);
+        // Drop it, raise it, delay it: each to both joints.
+        assert_eq!(r.len(), 3);
+        assert_eq!(r[0], Schedule::healthy());
+        assert_eq!(r[1].scales[..2], [0.3, 0.3]);
+        assert_eq!(r[2].onsets[..2], [40, 40]);
+        assert_eq!(s.describe(&Anatomy::ant()), "right_back_leg 0.2 @ 30");
+        // A joint search still names a leg whose joints happen to agree, and joints otherwise.
+        s.scales[1] = 0.5;
+        assert_eq!(
+            s.describe(&Anatomy::ant()),
+            "hip_4 0.2 @ 30, ankle_4 0.5 @ 30"
+        );
+    }
+
+    /// The names a synthetic evaluator takes are the Ant's own, from its model.
+    #[test]
+    fn the_ants_anatomy_is_its_models() {
+        let env = crate::env::AntEnv::new(crate::config::GaitConfig::default(), 0).unwrap();
+        let ant = Anatomy::ant();
+        assert_eq!(&ant.joints, env.damage().joint_names());
+        assert_eq!(
+            ant.legs.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>(),
+            env.leg_names()
+        );
+        assert_eq!(
+            ant.legs.iter().map(|(_, a)| *a).collect::<Vec<_>>(),
+            env.leg_actuators()
+        );
     }
 }
