@@ -1061,7 +1061,11 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         o.held_out_seed_base,
         o.max_steps,
     ));
-    md.push_str("| file | method | damage (joint scale @ onset; push) | severity | score | search success | held-out success |\n|---|---|---|---:|---:|---|---|\n");
+    let unit = match o.unit {
+        Unit::Joint => "joint",
+        Unit::Leg => "leg",
+    };
+    md.push_str(&format!("| file | method | damage ({unit} scale @ onset; push) | severity | score | search success | held-out success |\n|---|---|---|---:|---:|---|---|\n"));
     for c in &confirmed {
         md.push_str(&format!(
             "| `{}.json` | {} | {} | {:.3} | {:.3} | {} | {} |\n",
@@ -1122,10 +1126,12 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         report.shrunk.candidate.schedule.describe(&report.anatomy),
         report.shrunk.evaluations,
         if report.shrunk.minimal {
-            ": no single further reduction (drop a joint or the push, raise a scale by 0.1, halve \
-             the push, a later onset) keeps the failure"
+            format!(
+                ": no single further reduction (drop a {unit} or the push, raise a scale by 0.1, \
+                 halve the push, a later onset) keeps the failure"
+            )
         } else {
-            " (the shrink budget ran out: it may shrink further)"
+            " (the shrink budget ran out: it may shrink further)".to_string()
         },
         report.top[0].search.schedule.describe(&report.anatomy),
     ));
@@ -1499,6 +1505,11 @@ mod tests {
             summary.contains("`minimal.json` | shrunk | back_leg "),
             "{summary}"
         );
+        assert!(
+            summary.contains("damage (leg scale @ onset; push)"),
+            "{summary}"
+        );
+        assert!(summary.contains("(drop a leg or the push,"), "{summary}");
         let written: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.path().join("search.json")).unwrap())
                 .unwrap();
