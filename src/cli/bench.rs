@@ -172,6 +172,7 @@ pub(crate) fn bench_command(command: BenchCommand) -> Result<()> {
                 reference: false,
                 severity_budget: 1.0,
                 unit: search::Unit::Joint,
+                concentrate: false,
                 latest_onset: 100,
                 pushes: None,
                 evaluations,

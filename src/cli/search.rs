@@ -59,6 +59,10 @@ pub(crate) struct SearchArgs {
     /// both its joints (as legs die in the dead-legs world; a dead leg costs 2 of the budget).
     #[arg(long, value_enum, default_value_t = UnitArg::Joint)]
     unit: UnitArg,
+    /// Over the budget, keep the largest damages whole and cut the rest, instead of scaling
+    /// every damage down together: concentrated damage, so dead joints and legs are reachable.
+    #[arg(long)]
+    concentrate: bool,
     /// The latest step a joint's damage (or the push) may start at.
     #[arg(long, default_value_t = 100)]
     latest_onset: usize,
@@ -72,7 +76,7 @@ pub(crate) struct SearchArgs {
     /// Worker threads (default: all cores); results do not depend on it.
     #[arg(long)]
     threads: Option<usize>,
-    /// Output folder (default search/MODEL[-vs-OTHER]-kK[-legs][-pushI]-METHOD-sSEED); an
+    /// Output folder (default search/MODEL[-vs-OTHER]-kK[-legs][-concentrated][-pushI]-METHOD-sSEED); an
     /// existing one of the same search resumes.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
@@ -128,6 +132,7 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
         reference: !args.no_reference,
         severity_budget: args.budget,
         unit: args.unit.into(),
+        concentrate: args.concentrate,
         latest_onset: args.latest_onset,
         pushes: args.push_impulse.map(|impulse| search::space::PushSpace {
             impulse,
@@ -159,6 +164,14 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
             .map(|p| format!("-push{}", p.impulse))
             .unwrap_or_default();
         let legs = if opts.unit.is_joint() { "" } else { "-legs" };
+        let legs = format!(
+            "{legs}{}",
+            if opts.concentrate {
+                "-concentrated"
+            } else {
+                ""
+            }
+        );
         PathBuf::from("search").join(format!(
             "{}{vs}-k{}{legs}{push}-{}-s{}",
             opts.models[0].label,

@@ -154,6 +154,9 @@ pub struct SearchOptions {
     /// What a damage gene acts on: a joint (the default; absent from search.json) or a leg.
     #[serde(default, skip_serializing_if = "Unit::is_joint")]
     pub unit: Unit,
+    /// Over the budget, keep the largest damages whole (`--concentrate`); absent when off.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub concentrate: bool,
     pub latest_onset: usize,
     /// One push per schedule as well, under this impulse budget (`--push-impulse`); absent
     /// from a search without pushes.
@@ -267,6 +270,7 @@ impl SearchOptions {
                 Unit::Joint => None,
                 Unit::Leg => Some(anatomy.legs.clone().map(|(_, actuators)| actuators)),
             },
+            concentrate: self.concentrate,
         }
     }
 
@@ -311,6 +315,10 @@ pub fn score(objective: Objective, outcomes: &[Vec<EpisodeOutcome>], goal: f64) 
 
 fn is_zero(n: &usize) -> bool {
     *n == 0
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 /// The part of the score a shrunk schedule must keep: failure rate, or the success gap.
@@ -1010,7 +1018,7 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
     md.push_str(&format!("# gaitscope search: {what}\n\n"));
     md.push_str(&format!(
         "Models: {}. World `{}`. Damage: per {} a scale in [0, 1] from an onset step ≤ {}, \
-         Σ(1 − scale) ≤ {} (fatigue off){}. {} evaluations of {} by {}{}, each on the same {} \
+         Σ(1 − scale) ≤ {} (fatigue off{}){}. {} evaluations of {} by {}{}, each on the same {} \
          search seeds (from {}), step limit {}. Score: {}. The top {} re-run on {} held-out seeds \
          (from {}: `gaitscope eval --scenario FILE --episodes {} --seed {} --max-steps {}` gives \
          the same episodes).\n\n",
@@ -1026,6 +1034,11 @@ fn write_outputs(report: &SearchReport, out: &Path) -> Result<Vec<PathBuf>, Sear
         },
         o.latest_onset,
         o.severity_budget,
+        if o.concentrate {
+            "; over the budget the largest damages kept whole, the rest cut"
+        } else {
+            ""
+        },
         match &o.pushes {
             Some(p) => format!(
                 "; and one horizontal push on the torso or a leg, at most {} N for at most {} \
@@ -1373,6 +1386,7 @@ mod tests {
             reference: false,
             severity_budget: 1.0,
             unit: Unit::Joint,
+            concentrate: false,
             latest_onset: 100,
             pushes: None,
             evaluations,
@@ -1469,6 +1483,7 @@ mod tests {
     fn a_search_by_legs_finds_a_dead_leg_and_shrinks_to_it() {
         let opts = SearchOptions {
             unit: Unit::Leg,
+            concentrate: true,
             severity_budget: 2.0,
             ..options(Method::Cma, 200)
         };
@@ -1510,13 +1525,18 @@ mod tests {
             "{summary}"
         );
         assert!(summary.contains("(drop a leg or the push,"), "{summary}");
+        assert!(
+            summary.contains("the largest damages kept whole"),
+            "{summary}"
+        );
         let written: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.path().join("search.json")).unwrap())
                 .unwrap();
         assert_eq!(written["unit"], "leg");
+        assert_eq!(written["concentrate"], true);
         // A search by joints writes no unit: the folders of earlier searches resume unchanged.
         let joints = serde_json::to_value(options(Method::Cma, 200)).unwrap();
-        assert!(joints.get("unit").is_none());
+        assert!(joints.get("unit").is_none() && joints.get("concentrate").is_none());
     }
 
     /// A planted push failure: every episode fails exactly when the torso is pushed with at

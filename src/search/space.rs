@@ -235,6 +235,9 @@ pub struct Space {
     pub latest_onset: usize,
     pub pushes: Option<PushSpace>,
     pub legs: Option<[[usize; 2]; N_LEGS]>,
+    /// Over the budget, keep the largest damages whole and cut the rest (concentrated damage:
+    /// dead joints and legs are reachable), instead of scaling every damage down together.
+    pub concentrate: bool,
 }
 
 /// `x` folded into [0, 1] by reflection at 0 and 1 (a box constraint CMA-ES can move across
@@ -273,8 +276,9 @@ impl Space {
     }
 
     /// A genome (any reals; [`Space::genes`] of them: damages, onsets, then the push's) as a
-    /// schedule within the budgets: each gene folded into [0, 1]; damages scaled down together
-    /// when their sum over the joints (a leg's counts twice) exceeds K, then floored to
+    /// schedule within the budgets: each gene folded into [0, 1]; when the damages' sum over the
+    /// joints (a leg's counts twice) exceeds K, scaled down together — or, concentrated, the
+    /// largest kept whole, the next cut to what is left, the rest dropped — then floored to
     /// [`SCALE_STEP`] (so the budget holds after rounding); the push's impulse a fraction of its
     /// budget, floored to whole newtons.
     pub fn decode(&self, genome: &[f64]) -> Schedule {
@@ -289,7 +293,21 @@ impl Space {
             .zip(&damage)
             .map(|(u, d)| u.len() as f64 * d)
             .sum();
-        if total > self.severity_budget {
+        if total > self.severity_budget && self.concentrate {
+            // Largest first (ties in gene order); each costs its width.
+            let mut order: Vec<usize> = (0..units.len()).collect();
+            order.sort_by(|&a, &b| damage[b].total_cmp(&damage[a]).then(a.cmp(&b)));
+            let mut left = self.severity_budget;
+            for k in order {
+                let width = units[k].len() as f64;
+                if width * damage[k] <= left {
+                    left -= width * damage[k];
+                } else {
+                    damage[k] = left / width;
+                    left = 0.0;
+                }
+            }
+        } else if total > self.severity_budget {
             let shrink = self.severity_budget / total;
             for d in &mut damage {
                 *d *= shrink;
@@ -429,6 +447,7 @@ mod tests {
             latest_onset: 100,
             pushes: None,
             legs: None,
+            concentrate: false,
         };
         let mut rng = 12345u64;
         for _ in 0..2000 {
@@ -452,6 +471,7 @@ mod tests {
             latest_onset: 99,
             pushes: None,
             legs: None,
+            concentrate: false,
         };
         // Damages 0.8 and 0.6 (1.4, reflected from 1.4) sum to 1.4 > 1: scaled by 1/1.4.
         let mut genome = vec![0.0; GENES];
@@ -489,6 +509,7 @@ mod tests {
             latest_onset: 100,
             pushes: None,
             legs: None,
+            concentrate: false,
         };
         let mut s = Schedule::healthy();
         s.scales[0] = 0.05;
@@ -515,6 +536,7 @@ mod tests {
                 step_seconds: 0.05,
             }),
             legs: None,
+            concentrate: false,
         }
     }
 
@@ -626,6 +648,7 @@ mod tests {
             latest_onset: 100,
             pushes: None,
             legs: Some(Anatomy::ant().legs.map(|(_, a)| a)),
+            concentrate: false,
         }
     }
 
@@ -696,6 +719,43 @@ mod tests {
         assert_eq!(
             ant.legs.iter().map(|(_, a)| *a).collect::<Vec<_>>(),
             env.leg_actuators()
+        );
+    }
+
+    #[test]
+    fn concentrated_damage_keeps_the_largest_whole() {
+        let space = Space {
+            concentrate: true,
+            ..leg_space(2.0)
+        };
+        // Legs' damages 0.9, 0.8, 0.5, 0 cost 1.8, 1.6, 1.0 (4.4 > 2): the first kept whole,
+        // the second cut to the 0.2 left (damage 0.1), the third dropped.
+        let genes = [0.9, 0.8, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let s = space.decode(&genes);
+        assert_eq!(s.scales, [1.0, 1.0, 0.1, 0.1, 0.9, 0.9, 1.0, 1.0]);
+        assert!(s.severity() <= 2.0);
+        // Within the budget nothing changes: the same as scaling.
+        let within = [0.5, 0.25, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(space.decode(&within), leg_space(2.0).decode(&within));
+        // Over random genomes: the budget holds, and a leg near death (scale ≤ 0.1) is common
+        // where scaling everything down together almost never gives one.
+        let near_dead = |space: &Space| {
+            let mut rng = 4242u64;
+            (0..2000)
+                .filter(|_| {
+                    let s = space.decode(&genome(&mut rng, 8, 1.0));
+                    assert!(s.severity() <= 2.0 + 1e-9, "{s:?}");
+                    s.scales.iter().any(|&x| x <= 0.1)
+                })
+                .count()
+        };
+        let (concentrated, scaled) = (near_dead(&space), near_dead(&leg_space(2.0)));
+        eprintln!(
+            "a leg at scale ≤ 0.1 in 2,000 genomes: concentrated {concentrated}, scaled {scaled}"
+        );
+        assert!(
+            concentrated > 300 && scaled < 20,
+            "{concentrated} vs {scaled}"
         );
     }
 }
