@@ -145,7 +145,10 @@ fn a_scenario_with_its_rule_off_is_the_only_damage_in_a_dead_world() {
     let mut alone = AntEnv::new(world.clone(), 0).unwrap();
     for seed in 0..20 {
         alone.reset_with_seed(seed);
-        assert!(alone.pending_deaths().is_empty(), "seed {seed}: the world drew deaths");
+        assert!(
+            alone.pending_deaths().is_empty(),
+            "seed {seed}: the world drew deaths"
+        );
         for _ in 0..10 {
             alone.step(&[0.5; N_ACTUATORS]).unwrap();
         }
