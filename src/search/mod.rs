@@ -1323,16 +1323,23 @@ mod tests {
     /// A planted failure: every episode fails exactly when hip_2 runs below 0.3 from before
     /// step 50; otherwise it succeeds, ending nearer the goal the less hip_2 is damaged and the
     /// later (a slope for the distance tie-break, as a real policy's would be).
+    /// Other planted failures ([`leg_rule`], [`push_rule`]) swap the rule: whether a schedule
+    /// fails every episode, and how far from the goal its episodes end.
     struct Planted {
         anatomy: Anatomy,
         calls: AtomicUsize,
+        rule: fn(&Schedule) -> (bool, f64),
     }
 
     impl Planted {
         fn new() -> Self {
+            Self::by(|s| (Self::fails(s), Self::distance(s)))
+        }
+        fn by(rule: fn(&Schedule) -> (bool, f64)) -> Self {
             Planted {
                 anatomy: Anatomy::ant(),
                 calls: AtomicUsize::new(0),
+                rule,
             }
         }
         fn fails(s: &Schedule) -> bool {
@@ -1354,7 +1361,8 @@ mod tests {
             seeds: &[u64],
         ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
             self.calls.fetch_add(1, Ordering::SeqCst);
-            Ok(planted_outcomes(seeds, Self::fails(s), Self::distance(s)))
+            let (fails, distance) = (self.rule)(s);
+            Ok(planted_outcomes(seeds, fails, distance))
         }
     }
 
@@ -1450,33 +1458,20 @@ mod tests {
         assert!(hits[1].is_none_or(|r| r > cma), "{hits:?}");
     }
 
-    /// A planted leg failure: every episode fails exactly when back_leg (hip_3 and ankle_3)
-    /// runs below 0.3 from before step 50 — what a search by legs looks for in one gene.
-    struct PlantedLeg(Planted);
-
+    /// back_leg's actuators: hip_3 and ankle_3.
     const BACK_LEG: [usize; 2] = [6, 7];
 
-    impl PlantedLeg {
-        fn fails(s: &Schedule) -> bool {
-            BACK_LEG
-                .iter()
-                .all(|&i| s.scales[i] < 0.3 && s.onsets[i] < 50)
-        }
+    /// A planted leg failure: every episode fails exactly when back_leg runs below 0.3 from
+    /// before step 50 — what a search by legs looks for in one gene.
+    fn leg_fails(s: &Schedule) -> bool {
+        BACK_LEG
+            .iter()
+            .all(|&i| s.scales[i] < 0.3 && s.onsets[i] < 50)
     }
 
-    impl Evaluate for PlantedLeg {
-        fn anatomy(&self) -> &Anatomy {
-            &self.0.anatomy
-        }
-        fn evaluate(
-            &self,
-            s: &Schedule,
-            seeds: &[u64],
-        ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
-            self.0.calls.fetch_add(1, Ordering::SeqCst);
-            let d = (1.0 - s.scales[BACK_LEG[0]]) * (1.0 - s.onsets[BACK_LEG[0]] as f64 / 101.0);
-            Ok(planted_outcomes(seeds, Self::fails(s), 3.0 * d))
-        }
+    fn leg_rule(s: &Schedule) -> (bool, f64) {
+        let d = (1.0 - s.scales[BACK_LEG[0]]) * (1.0 - s.onsets[BACK_LEG[0]] as f64 / 101.0);
+        (leg_fails(s), 3.0 * d)
     }
 
     #[test]
@@ -1488,7 +1483,7 @@ mod tests {
             ..options(Method::Cma, 200)
         };
         let dir = tempfile::tempdir().unwrap();
-        let planted = PlantedLeg(Planted::new());
+        let planted = Planted::by(leg_rule);
         let report = run(&opts, &planted, dir.path()).unwrap();
         // Every candidate damages whole legs, within the budget (a leg costs 2 at scale 0).
         for c in &report.searched {
@@ -1499,15 +1494,12 @@ mod tests {
             }
         }
         let best = &report.top[0].search.schedule;
-        assert!(PlantedLeg::fails(best), "{best:?}");
+        assert!(leg_fails(best), "{best:?}");
         let shrunk = &report.shrunk.candidate.schedule;
-        assert!(
-            report.shrunk.minimal && PlantedLeg::fails(shrunk),
-            "{shrunk:?}"
-        );
+        assert!(report.shrunk.minimal && leg_fails(shrunk), "{shrunk:?}");
         assert_eq!(shrunk.damaged().collect::<Vec<_>>(), BACK_LEG, "{shrunk:?}");
         for r in opts.space(&Anatomy::ant()).reductions(shrunk) {
-            assert!(!PlantedLeg::fails(&r), "{r:?} still fails");
+            assert!(!leg_fails(&r), "{r:?} still fails");
         }
         // Described and written as the leg; the summary says what a gene acted on.
         assert!(shrunk.describe(&Anatomy::ant()).starts_with("back_leg "));
@@ -1541,32 +1533,18 @@ mod tests {
 
     /// A planted push failure: every episode fails exactly when the torso is pushed with at
     /// least 15 N·s before step 50, whatever the joints; nearer the goal the weaker the push.
-    struct PlantedPush(Planted);
-
-    impl PlantedPush {
-        fn fails(s: &Schedule) -> bool {
-            s.push
-                .as_ref()
-                .is_some_and(|p| p.body == "torso" && p.impulse(0.05) >= 15.0 && p.onset < 50)
-        }
+    fn push_fails(s: &Schedule) -> bool {
+        s.push
+            .as_ref()
+            .is_some_and(|p| p.body == "torso" && p.impulse(0.05) >= 15.0 && p.onset < 50)
     }
 
-    impl Evaluate for PlantedPush {
-        fn anatomy(&self) -> &Anatomy {
-            &self.0.anatomy
-        }
-        fn evaluate(
-            &self,
-            s: &Schedule,
-            seeds: &[u64],
-        ) -> Result<Vec<Vec<EpisodeOutcome>>, SearchError> {
-            self.0.calls.fetch_add(1, Ordering::SeqCst);
-            let d = s.push.as_ref().map_or(0.0, |p| {
-                let torso = if p.body == "torso" { 1.0 } else { 0.3 };
-                torso * (p.impulse(0.05) / 40.0).min(1.0) * (1.0 - p.onset as f64 / 101.0)
-            });
-            Ok(planted_outcomes(seeds, Self::fails(s), 3.0 * d))
-        }
+    fn push_rule(s: &Schedule) -> (bool, f64) {
+        let d = s.push.as_ref().map_or(0.0, |p| {
+            let torso = if p.body == "torso" { 1.0 } else { 0.3 };
+            torso * (p.impulse(0.05) / 40.0).min(1.0) * (1.0 - p.onset as f64 / 101.0)
+        });
+        (push_fails(s), 3.0 * d)
     }
 
     #[test]
@@ -1579,7 +1557,7 @@ mod tests {
             }),
             ..options(Method::Cma, 200)
         };
-        let planted = PlantedPush(Planted::new());
+        let planted = Planted::by(push_rule);
         let report = run(&opts, &planted, dir.path()).unwrap();
         assert_eq!(report.searched.len(), 200);
         for c in &report.searched {
@@ -1589,16 +1567,16 @@ mod tests {
             }
         }
         let best = &report.top[0];
-        assert!(PlantedPush::fails(&best.search.schedule), "{best:?}");
+        assert!(push_fails(&best.search.schedule), "{best:?}");
         // The search seeds undamaged: the planted evaluator succeeds there.
         assert_eq!(report.undamaged_search, vec![1.0]);
         // Shrunk to the push alone, which still fails, and no single reduction of it does.
         let s = &report.shrunk.candidate.schedule;
         assert!(report.shrunk.minimal);
-        assert!(PlantedPush::fails(s), "{s:?}");
+        assert!(push_fails(s), "{s:?}");
         assert_eq!(s.damaged().count(), 0, "{s:?}");
         for r in opts.space(&Anatomy::ant()).reductions(s) {
-            assert!(!PlantedPush::fails(&r), "{r:?} still fails");
+            assert!(!push_fails(&r), "{r:?} still fails");
         }
         // The written scenario carries the push; the summary says pushes were searched.
         let top = std::fs::read_to_string(dir.path().join("minimal.json")).unwrap();
