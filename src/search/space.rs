@@ -283,10 +283,8 @@ impl Space {
     /// budget, floored to whole newtons.
     pub fn decode(&self, genome: &[f64]) -> Schedule {
         let units = self.units();
-        let mut damage: Vec<f64> = units
-            .iter()
-            .enumerate()
-            .map(|(k, _)| reflect(genome.get(k).copied().unwrap_or(0.0)))
+        let mut damage: Vec<f64> = (0..units.len())
+            .map(|k| reflect(genome.get(k).copied().unwrap_or(0.0)))
             .collect();
         let total: f64 = units
             .iter()
