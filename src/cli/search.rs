@@ -76,8 +76,9 @@ pub(crate) struct SearchArgs {
     /// Worker threads (default: all cores); results do not depend on it.
     #[arg(long)]
     threads: Option<usize>,
-    /// Output folder (default search/MODEL[-vs-OTHER]-kK[-legs][-concentrated][-pushI]-METHOD-sSEED); an
-    /// existing one of the same search resumes.
+    /// Output folder (default
+    /// search/MODEL[-vs-OTHER]-kK[-legs][-concentrated][-pushI]-METHOD-sSEED); an existing
+    /// one of the same search resumes.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
 }
@@ -164,16 +165,13 @@ pub(crate) fn search_command(args: SearchArgs) -> Result<()> {
             .map(|p| format!("-push{}", p.impulse))
             .unwrap_or_default();
         let legs = if opts.unit.is_joint() { "" } else { "-legs" };
-        let legs = format!(
-            "{legs}{}",
-            if opts.concentrate {
-                "-concentrated"
-            } else {
-                ""
-            }
-        );
+        let concentrated = if opts.concentrate {
+            "-concentrated"
+        } else {
+            ""
+        };
         PathBuf::from("search").join(format!(
-            "{}{vs}-k{}{legs}{push}-{}-s{}",
+            "{}{vs}-k{}{legs}{concentrated}{push}-{}-s{}",
             opts.models[0].label,
             opts.severity_budget,
             method.name(),
