@@ -453,6 +453,49 @@ fn the_fatigue_view_opens_only_in_a_world_where_fatigue_damages() {
     }
 }
 
+/// The z, PCA and probe views open only where some lane's model has an encoder: a memoryless
+/// model's third column shows its actions, commanded and applied, instead of three empty views.
+#[test]
+fn the_latent_views_open_only_for_a_model_with_an_encoder() {
+    let lstm = Actor::load(std::path::Path::new("checkpoints/encoder-lstm")).unwrap();
+    let baseline = Actor::load(std::path::Path::new("checkpoints/baseline")).unwrap();
+    let random = Actor::Builtin(BuiltinPolicy::Random);
+    let cases = [
+        ("baseline", vec![baseline.clone()], false),
+        ("random", vec![random], false),
+        ("lstm", vec![lstm.clone()], true),
+        ("baseline beside lstm", vec![baseline, lstm], true),
+    ];
+    for (name, actors, latent) in cases {
+        let mut opts = options(Sink::Memory);
+        opts.actors = actors;
+        opts.config.env.max_episode_steps = 5;
+        let run = record(opts, &AtomicBool::new(false)).unwrap();
+        let views = common::active_blueprint_view_names(&run.storage.unwrap().take());
+        for view in ["z", "z in PCA basis", "Probe: P(damaged) vs truth"] {
+            assert_eq!(
+                views.contains(&view.to_string()),
+                latent,
+                "{name}: {view} in {views:?}"
+            );
+        }
+        for view in [
+            "Action commanded per joint (the policy's output)",
+            "Action applied per joint (× torque scale)",
+        ] {
+            assert_eq!(
+                views.contains(&view.to_string()),
+                !latent,
+                "{name}: {view} in {views:?}"
+            );
+        }
+        assert!(
+            views.contains(&"Torque scale".to_string()),
+            "{name}: {views:?}"
+        );
+    }
+}
+
 /// The key every recording carries: which colour is which model, and what the legs', gait's,
 /// probe's and PCA's colours and the endings' words mean.
 #[test]

@@ -127,16 +127,19 @@ pub fn run_live(
     note: &mut dyn FnMut(LaunchNote),
 ) -> Result<Result<SimReport, LiveError>, LaunchError> {
     let (roots, titles) = views(&launch.setup.checkpoint, launch.setup.compare.as_deref());
-    // The views for the checkpoints' own worlds (a checkpoint that cannot be read fails in the
-    // sim, which says why; the default views meanwhile).
-    let worlds: Result<Vec<crate::config::GaitConfig>, _> =
+    // The views for the checkpoints' own worlds and encoders (a checkpoint that cannot be read
+    // fails in the sim, which says why; the default views meanwhile).
+    let metas: Result<Vec<crate::policy::checkpoint::CheckpointMeta>, _> =
         std::iter::once(&launch.setup.checkpoint)
             .chain(&launch.setup.compare)
-            .map(|dir| crate::policy::checkpoint::read_meta(dir).map(|m| m.env))
+            .map(|dir| crate::policy::checkpoint::read_meta(dir))
             .collect();
-    let shown = worlds.map_or_else(
+    let shown = metas.map_or_else(
         |_| telemetry::ViewOptions::default(),
-        telemetry::ViewOptions::for_worlds,
+        |metas| {
+            telemetry::ViewOptions::for_worlds(metas.iter().map(|m| &m.env))
+                .with_latent(metas.iter().map(|m| m.net.encoder.uses_window()))
+        },
     );
     let mut offered = launch.offered;
     for dir in std::iter::once(&launch.setup.checkpoint).chain(&launch.setup.compare) {

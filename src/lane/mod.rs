@@ -136,6 +136,11 @@ impl Actor {
         }
     }
 
+    /// Whether the actor has a latent z: a checkpoint with a context encoder.
+    pub fn has_z(&self) -> bool {
+        self.policy().is_some_and(|p| p.net().encoder.uses_window())
+    }
+
     pub fn checkpoint_dir(&self) -> Option<&Path> {
         match self {
             Actor::Checkpoint { dir, .. } => Some(dir),

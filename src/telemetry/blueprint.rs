@@ -73,14 +73,20 @@ pub struct ViewOptions {
     /// accumulates in every world, but where nothing triggers on it (dead-legs: actuators die
     /// by draw) its rising lines under "τ = threshold" would promise a damage that never comes.
     pub fatigue: bool,
+    /// The z, z-in-PCA and probe views: only where some lane's model has an encoder. A
+    /// memoryless model has no z, and three views saying "No data available" read as a broken
+    /// recording; its third column shows the actions instead, commanded beside applied (where
+    /// a joint lost torque the two part).
+    pub latent: bool,
 }
 
 impl Default for ViewOptions {
-    /// The paper's world: fatigue shown, attribution not up front.
+    /// The paper's world and an encoder: fatigue and z shown, attribution not up front.
     fn default() -> Self {
         Self {
             attribution: false,
             fatigue: true,
+            latent: true,
         }
     }
 }
@@ -93,6 +99,14 @@ impl ViewOptions {
         Self {
             fatigue: worlds.into_iter().any(|w| w.borrow().damage.fatigue),
             ..Self::default()
+        }
+    }
+
+    /// These views, with the latent ones where any of the lanes' models has an encoder.
+    pub fn with_latent(self, encoders: impl IntoIterator<Item = bool>) -> Self {
+        Self {
+            latent: encoders.into_iter().any(|e| e),
+            ..self
         }
     }
 }
@@ -162,28 +176,54 @@ pub fn layout_for(
         )
     });
     let scale = series(TimeSeriesView::new("Torque scale").with_contents(paths(&["joints/scale"])));
-    let latent = series(TimeSeriesView::new("z").with_contents(paths(&["latent/z"])));
-    // Its legend stays: ten named groups are the point of this plot.
-    let why: rerun::blueprint::ContainerLike =
-        TimeSeriesView::new("Why z moved: each group's share of ‖z − z(0)‖")
-            .with_contents(paths(&["latent/attribution_groups"]))
-            .into();
-    let why_grid: rerun::blueprint::ContainerLike = rerun::blueprint::Spatial2DView::new(
-        "Why z moved: group × window slot (red raised ‖z − z(0)‖, blue lowered it)",
-    )
-    .with_contents(paths(&["latent/attribution_map/**"]))
-    .into();
-    let tabs = |views: Vec<rerun::blueprint::ContainerLike>, shown: Option<String>| {
-        let tabs = rerun::blueprint::Tabs::new(views);
-        match shown {
-            Some(path) if attribution => tabs.with_active_tab(path),
-            _ => tabs,
-        }
+    // The third column: the models' z (why it moved, where it sits, what a probe reads from
+    // it), or, where no lane's model has an encoder, the actions it would have shown beside.
+    let third: rerun::blueprint::ContainerLike = if views.latent {
+        let latent = series(TimeSeriesView::new("z").with_contents(paths(&["latent/z"])));
+        // Its legend stays: ten named groups are the point of this plot.
+        let why: rerun::blueprint::ContainerLike =
+            TimeSeriesView::new("Why z moved: each group's share of ‖z − z(0)‖")
+                .with_contents(paths(&["latent/attribution_groups"]))
+                .into();
+        let why_grid: rerun::blueprint::ContainerLike = rerun::blueprint::Spatial2DView::new(
+            "Why z moved: group × window slot (red raised ‖z − z(0)‖, blue lowered it)",
+        )
+        .with_contents(paths(&["latent/attribution_map/**"]))
+        .into();
+        let tabs = |views: Vec<rerun::blueprint::ContainerLike>, shown: Option<String>| {
+            let tabs = rerun::blueprint::Tabs::new(views);
+            match shown {
+                Some(path) if attribution => tabs.with_active_tab(path),
+                _ => tabs,
+            }
+        };
+        let (why_path, grid_path) = (view_path(&why), view_path(&why_grid));
+        let probe = series(
+            TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"])),
+        );
+        let pca = Spatial2DView::new("z in PCA basis")
+            .with_contents(paths(&["latent/pca", "latent/pca_trail"]));
+        let pca3 = Spatial3DView::new("z in PCA basis, 3-D")
+            .with_contents(paths(&["latent/pca3", "latent/pca3_trail"]));
+        Vertical::new([
+            tabs(vec![latent, why], why_path).into(),
+            tabs(vec![pca.into(), pca3.into(), why_grid], grid_path).into(),
+            probe,
+        ])
+        .into()
+    } else {
+        Vertical::new([
+            series(
+                TimeSeriesView::new("Action commanded per joint (the policy's output)")
+                    .with_contents(paths(&["actions/commanded"])),
+            ),
+            series(
+                TimeSeriesView::new("Action applied per joint (× torque scale)")
+                    .with_contents(paths(&["actions/applied"])),
+            ),
+        ])
+        .into()
     };
-    let (why_path, grid_path) = (view_path(&why), view_path(&why_grid));
-    let probe = series(
-        TimeSeriesView::new("Probe: P(damaged) vs truth").with_contents(paths(&["probe/**"])),
-    );
     // Its legend stays, top right: one line per model, named by it — the models' key.
     let progress: rerun::blueprint::ContainerLike = TimeSeriesView::new("Goal distance (m)")
         .with_contents(paths(&["goal/distance"]))
@@ -200,10 +240,6 @@ pub fn layout_for(
             ),
         ));
     }
-    let pca = Spatial2DView::new("z in PCA basis")
-        .with_contents(paths(&["latent/pca", "latent/pca_trail"]));
-    let pca3 = Spatial3DView::new("z in PCA basis, 3-D")
-        .with_contents(paths(&["latent/pca3", "latent/pca3_trail"]));
     let events: rerun::blueprint::ContainerLike = TextLogView::new("Damage events")
         .with_contents(paths(&["events"]))
         .into();
@@ -251,12 +287,7 @@ pub fn layout_for(
                 }
             }
             .into(),
-            Vertical::new([
-                tabs(vec![latent, why], why_path).into(),
-                tabs(vec![pca.into(), pca3.into(), why_grid], grid_path).into(),
-                probe,
-            ])
-            .into(),
+            third,
         ])
         .with_column_shares([2.0, 1.2, 1.2]),
     )

@@ -182,7 +182,8 @@ pub fn record(
     // that stops on an error (a state refused at the episode's start, a fork that never came)
     // leaves no `.partial` behind. After the rename there is nothing left to remove.
     let _leftover = file.as_ref().map(|f| RemoveOnDrop(f.partial.clone()));
-    let views = super::ViewOptions::for_worlds(opts.actors.iter().map(|a| a.world(&opts.config)));
+    let views = super::ViewOptions::for_worlds(opts.actors.iter().map(|a| a.world(&opts.config)))
+        .with_latent(opts.actors.iter().map(Actor::has_z));
     let (rec, storage) = super::open_titled(&sink, &recording_id, &roots, &titles, views)?;
     let specs = opts
         .actors

@@ -388,6 +388,7 @@ impl Session {
         let views = super::ViewOptions {
             attribution: self.attribution,
             ..super::ViewOptions::for_worlds(self.lanes.iter().map(|l| l.core.env().config()))
+                .with_latent(self.lanes.iter().map(|l| l.actor().has_z()))
         };
         super::send_layout_for(&self.rec, &roots, &titles, &plots, views)
     }
