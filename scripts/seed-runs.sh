@@ -14,7 +14,7 @@
 # from its 500k baseline (train --init-from; the oracle's damage inputs start at zero weight),
 # 250k steps each, the same seed — what the truth is worth to a policy that already walks (done:
 # not met, +6 / −13 / −10). Then the dead-legs pair goes on from 500k to 1M (its oracle was still
-# gaining), then dead-joints' baseline-s1 and oracle-s1 go on to 1M. The LSTM runs
+# gaining; done: +19 / −24 / −28, not met), then dead-joints' baseline-s1 and oracle-s1 go on to 1M. The LSTM runs
 # follow once oracle − baseline ≥ 15 points on held-out seeds. Each run resumes from its last checkpoint (every
 # 10,000 steps), so `start` is the same command on the first day and on a fresh machine after a
 # clone. The replay buffers live outside the work tree (~/.cache/gaitscope/replay/<world>/<run>),
